@@ -1,0 +1,112 @@
+"""Registries: name -> constructor, with clear errors for unknown names and keys.
+
+Usage::
+
+    @RENDERERS.register("mesh")
+    class MeshRenderer: ...
+
+    renderer = RENDERERS.build({"name": "mesh", "image_size": 128})
+
+``build`` accepts any mapping (a plain dict or an OmegaConf ``DictConfig``); the ``name``
+key picks the entry and every other key is passed as a keyword argument. A name that is
+not registered, or a key the constructor does not accept, raises :class:`UserError`
+listing what is known, so a typo in a config never passes silently.
+"""
+
+from __future__ import annotations
+
+import difflib
+import inspect
+from typing import Any, Callable, Dict, Iterable, Mapping, Optional
+
+from l3d_app.errors import UserError
+
+
+def _suggest(word: str, known: Iterable[str]) -> str:
+    close = difflib.get_close_matches(word, list(known), n=1)
+    return f" Did you mean '{close[0]}'?" if close else ""
+
+
+def accepted_keywords(fn: Callable) -> Optional[set]:
+    """Keyword names ``fn`` accepts, or None when it takes ``**kwargs``."""
+    target = fn.__init__ if inspect.isclass(fn) else fn
+    params = inspect.signature(target).parameters.values()
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+        return None
+    return {p.name for p in params if p.name != "self" and p.kind in (
+        inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)}
+
+
+def check_keywords(what: str, fn: Callable, kwargs: Mapping[str, Any]) -> None:
+    """Raise :class:`UserError` if ``kwargs`` holds a key that ``fn`` does not accept."""
+    accepted = accepted_keywords(fn)
+    if accepted is None:
+        return
+    unknown = sorted(set(kwargs) - accepted)
+    if unknown:
+        key = unknown[0]
+        raise UserError(
+            f"unknown key '{key}' for {what}.{_suggest(key, accepted)} "
+            f"Known keys: {', '.join(sorted(accepted)) or '(none)'}")
+
+
+class Registry:
+    """A named table of constructors (classes or factory functions)."""
+
+    def __init__(self, kind: str):
+        self.kind = kind
+        self._entries: Dict[str, Callable] = {}
+
+    def register(self, name: str) -> Callable[[Callable], Callable]:
+        """Decorator registering ``fn`` under ``name`` (names are unique)."""
+        def decorator(fn: Callable) -> Callable:
+            if name in self._entries and self._entries[name] is not fn:
+                raise KeyError(f"{self.kind} '{name}' is registered twice")
+            self._entries[name] = fn
+            return fn
+        return decorator
+
+    def names(self) -> list:
+        return sorted(self._entries)
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._entries
+
+    def get(self, name: str) -> Callable:
+        """The constructor registered as ``name``; a clear UserError otherwise."""
+        if name not in self._entries:
+            raise UserError(
+                f"unknown {self.kind} '{name}'.{_suggest(str(name), self._entries)} "
+                f"Known: {', '.join(self.names()) or '(none)'}")
+        return self._entries[name]
+
+    def build(self, cfg: Mapping[str, Any], **extra: Any) -> Any:
+        """Construct the entry named by ``cfg['name']`` with the other keys as kwargs.
+
+        ``extra`` keyword arguments (e.g. a device) are added to the config's keys.
+        """
+        if cfg is None or "name" not in cfg:
+            raise UserError(f"a {self.kind} config needs a 'name' (known: {', '.join(self.names())})")
+        kwargs = {str(k): _plain(v) for k, v in cfg.items() if k != "name"}
+        kwargs.update(extra)
+        fn = self.get(str(cfg["name"]))
+        check_keywords(f"{self.kind} '{cfg['name']}'", fn, kwargs)
+        return fn(**kwargs)
+
+
+def _plain(value: Any) -> Any:
+    """OmegaConf containers to plain Python lists/dicts; other values unchanged."""
+    try:
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+    except ImportError:  # library use without OmegaConf installed
+        return value
+    if isinstance(value, (DictConfig, ListConfig)):
+        return OmegaConf.to_container(value, resolve=True)
+    return value
+
+
+TASKS = Registry("task")
+RENDERERS = Registry("renderer")
+MODELS = Registry("model")
+LOSSES = Registry("loss")
+DATASETS = Registry("data source")
