@@ -198,8 +198,17 @@ def look_at_rotation(eye: torch.Tensor, at: torch.Tensor, up: torch.Tensor,
     x = torch.cross(z, up, dim=-1)  # camera right = forward x up (down = -up)
     degenerate = x.norm(dim=-1, keepdim=True) < eps * up.norm(dim=-1, keepdim=True).clamp_min(1e-30)
     if degenerate.any():
-        axis = torch.nn.functional.one_hot(z.abs().argmin(dim=-1), 3).to(z.dtype)
+        # Most perpendicular world axis = smallest |z_i|; near-ties (rounding noise, e.g.
+        # cos(pi/2) != 0 at elev = +-90) go to the first of X, Y, Z as documented.
+        az = z.abs()
+        tol = max(eps, 64 * torch.finfo(z.dtype).eps)
+        near_min = az <= az.min(dim=-1, keepdim=True).values + tol
+        first = torch.argmax(near_min.to(torch.uint8), dim=-1)
+        axis = torch.nn.functional.one_hot(first, 3).to(z.dtype)
         x = torch.where(degenerate, torch.cross(z, axis, dim=-1), x)
+    # Re-orthogonalise against z: when up is nearly parallel to z the cross product is
+    # tiny and its rounding error would otherwise leave R visibly non-orthogonal.
+    x = x - (x * z).sum(dim=-1, keepdim=True) * z
     x = torch.nn.functional.normalize(x, dim=-1)
     y = torch.cross(z, x, dim=-1)  # camera down
     return torch.stack([x, y, z], dim=1)
@@ -223,9 +232,8 @@ def look_at(dist: TensorLike = 1.0, elev: TensorLike = 0.0, azim: TensorLike = 0
     up_t = torch.as_tensor(up, dtype=dtype, device=device).reshape(-1, 3)
     offset = torch.stack([d * torch.cos(e) * torch.sin(a), d * torch.sin(e),
                           d * torch.cos(e) * torch.cos(a)], dim=-1)
-    eye = at_t + offset
-    b = eye.shape[0]
-    R = look_at_rotation(eye, at_t.expand(b, 3), up_t.expand(b, 3))
+    eye, at_b, up_b = torch.broadcast_tensors(at_t + offset, at_t, up_t)
+    R = look_at_rotation(eye, at_b, up_b)
     t = -(R @ eye[..., None])[..., 0]
     return R, t
 

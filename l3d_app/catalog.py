@@ -1,0 +1,23 @@
+"""Import every module that registers something, so registries are complete.
+
+Registration happens at import time (``@RENDERERS.register(...)``); the app calls
+:func:`load_all` once before building anything from a config.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+MODULES = (
+    "l3d_app.data.scenes",
+    "l3d_app.render.mesh_renderer",
+    "l3d_app.render.soft_rasterize",
+    "l3d_app.tasks.render360",
+    "l3d_app.tasks.dolly",
+)
+
+
+def load_all() -> None:
+    """Import all registering modules (idempotent)."""
+    for name in MODULES:
+        importlib.import_module(name)

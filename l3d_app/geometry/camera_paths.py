@@ -1,0 +1,60 @@
+"""Camera paths: turntables and dolly zooms, as batched :class:`Cameras`."""
+
+from __future__ import annotations
+
+from typing import Sequence, Tuple
+
+import torch
+
+from l3d_app.errors import UserError
+from l3d_app.geometry.cameras import Cameras, look_at
+
+
+def turntable(num_frames: int, distance: float, elevation: float, fov: float, image_size: int,
+              at: Sequence[float] = (0.0, 0.0, 0.0), device=None) -> Cameras:
+    """``num_frames`` cameras evenly spaced in azimuth over 360 degrees (the last frame
+    stops one step short of the first, so the gif loops without a repeated frame).
+
+    distance in world units, elevation and fov in degrees, image_size in pixels (square).
+    """
+    if num_frames <= 0:
+        raise UserError(f"num_frames must be positive, got {num_frames}")
+    if distance <= 0:
+        raise UserError(f"distance must be positive, got {distance}")
+    azim = torch.arange(num_frames, dtype=torch.float32, device=device) * (360.0 / num_frames)
+    R, t = look_at(distance, elevation, azim, at=at, device=device)
+    return Cameras.from_fov(R, t, fov, image_size, image_size)
+
+
+def dolly_distance(fov_deg: torch.Tensor, radius: float, fraction: float) -> torch.Tensor:
+    """Camera distance at which a sphere of ``radius`` spans ``fraction`` of the image width.
+
+    The sphere's silhouette has angular half-width asin(r / d); it spans ``fraction`` of
+    the image when tan(asin(r / d)) = fraction * tan(fov / 2), i.e.
+    ``d = r * sqrt(1 + 1 / (fraction * tan(fov / 2))^2)``. Exact for a sphere at any
+    field of view (a plain ``r / (fraction * tan(fov/2))`` drifts at wide angles).
+    """
+    k = fraction * torch.tan(torch.deg2rad(fov_deg) / 2)
+    return radius * torch.sqrt(1 + 1 / k ** 2)
+
+
+def dolly_zoom(num_frames: int, fov_range: Tuple[float, float], radius: float, fraction: float,
+               image_size: int, elevation: float = 0.0, azimuth: float = 0.0,
+               at: Sequence[float] = (0.0, 0.0, 0.0), device=None) -> Tuple[Cameras, torch.Tensor]:
+    """Cameras whose field of view sweeps ``fov_range`` (degrees) while the distance
+    follows :func:`dolly_distance`, so a subject of bounding radius ``radius`` keeps its
+    on-screen size (``fraction`` of the width) and the background perspective changes.
+
+    Returns the cameras and the (N,) distances.
+    """
+    if num_frames <= 0:
+        raise UserError(f"num_frames must be positive, got {num_frames}")
+    lo, hi = float(fov_range[0]), float(fov_range[1])
+    if not (0 < lo < 180 and 0 < hi < 180):
+        raise UserError(f"dolly fov range must lie in (0, 180) degrees, got {list(fov_range)}")
+    if not 0 < fraction < 1:
+        raise UserError(f"subject fraction must be in (0, 1), got {fraction}")
+    fov = torch.linspace(lo, hi, num_frames, device=device)
+    dist = dolly_distance(fov, radius, fraction)
+    R, t = look_at(dist, elevation, azimuth, at=at, device=device)
+    return Cameras.from_fov(R, t, fov, image_size, image_size), dist

@@ -1,0 +1,39 @@
+"""What every task receives: output folder, device, seeded generator, logger, stopwatch."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict
+
+import torch
+
+from l3d_app.runtime.files import write_json
+from l3d_app.runtime.logger import RunLogger
+from l3d_app.runtime.timer import Stopwatch
+
+
+@dataclass
+class RunContext:
+    """The run's shared pieces. Tasks write artefacts with ``ctx.path(name)``."""
+
+    out_dir: Path
+    device: torch.device
+    generator: torch.Generator
+    logger: RunLogger
+    stopwatch: Stopwatch = field(default_factory=Stopwatch)
+    params: Dict[str, Any] = field(default_factory=dict)
+
+    def path(self, name: str) -> Path:
+        """A path inside the run directory (parent folders created)."""
+        p = self.out_dir / name
+        p.parent.mkdir(parents=True, exist_ok=True)
+        return p
+
+    def write_metrics(self, metrics: Dict[str, Any]) -> Dict[str, Any]:
+        """Write ``metrics.json`` (final figures + wall-clock ``seconds``) atomically."""
+        out = dict(metrics)
+        out.setdefault("seconds", round(self.stopwatch.elapsed, 4))
+        out["device"] = str(self.device)
+        write_json(self.path("metrics.json"), out)
+        return out

@@ -1,0 +1,38 @@
+"""Images and animations on disk (PNG, GIF), written atomically."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Sequence, Union
+
+import imageio.v2 as imageio
+import numpy as np
+import torch
+
+from l3d_app.runtime.files import atomic_path
+
+Frames = Union[torch.Tensor, np.ndarray, Sequence]
+
+
+def to_uint8(images: Frames) -> np.ndarray:
+    """Float images in [0, 1] (..., H, W, C) -> uint8 array (values clamped)."""
+    if torch.is_tensor(images):
+        images = images.detach().float().cpu().numpy()
+    images = np.asarray(images, dtype=np.float32)
+    return (np.clip(images, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def save_gif(path: os.PathLike, frames: Frames, fps: float = 15.0) -> Path:
+    """Save (N, H, W, 3) float frames in [0, 1] as a looping GIF at ``fps`` frames/s."""
+    frames = to_uint8(frames)
+    with atomic_path(path) as tmp:
+        imageio.mimsave(tmp, list(frames), format="GIF", duration=1000.0 / float(fps), loop=0)
+    return Path(path)
+
+
+def save_png(path: os.PathLike, image: Frames) -> Path:
+    """Save one (H, W, 3) float image in [0, 1] as PNG."""
+    with atomic_path(path) as tmp:
+        imageio.imwrite(tmp, to_uint8(image), format="PNG")
+    return Path(path)

@@ -1,0 +1,33 @@
+"""Pieces shared by tasks: input checks and batched rendering with a progress bar."""
+
+from __future__ import annotations
+
+from typing import Dict
+
+import torch
+
+from l3d_app.errors import UserError
+from l3d_app.geometry.cameras import Cameras
+from l3d_app.runtime.progress import progress
+
+
+def require_positive(cfg, *keys: str) -> None:
+    """UserError naming the first of ``keys`` whose config value is not > 0."""
+    for key in keys:
+        value = cfg.get(key)
+        if value is None or not isinstance(value, (int, float)) or value <= 0:
+            raise UserError(f"{key} must be a positive number, got {value!r}")
+
+
+@torch.no_grad()
+def render_frames(renderer, mesh, cams: Cameras, batch: int, desc: str,
+                  keys=("image", "alpha", "depth")) -> Dict[str, torch.Tensor]:
+    """Render ``cams`` in batches of ``batch`` views; returns the ``keys`` outputs
+    stacked over all views, on the CPU: image (N, H, W, 3), alpha (N, H, W), depth (N, H, W).
+    """
+    chunks: Dict[str, list] = {k: [] for k in keys}
+    for start in progress(range(0, len(cams), batch), desc=desc):
+        out = renderer(mesh, cams[start:start + batch])
+        for k in keys:
+            chunks[k].append(out[k].detach().cpu())
+    return {k: torch.cat(v) for k, v in chunks.items()}
