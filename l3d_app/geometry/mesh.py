@@ -131,22 +131,3 @@ class Mesh:
         scale = centred.norm(dim=-1).max().clamp_min(1e-12)
         return self.with_verts(centred * (radius / scale))
 
-
-def concat_meshes(meshes, default_color=(0.7, 0.7, 0.7)) -> Mesh:
-    """Join meshes into one vertex-coloured mesh (UV textures are not merged).
-
-    Meshes without vertex colours get ``default_color``. A mesh with a UV texture is an
-    error here: render textured meshes in their own pass and composite by depth.
-    """
-    if any(m.has_texture for m in meshes):
-        raise ValueError("concat_meshes joins vertex-coloured meshes; render textured ones separately")
-    verts, faces, colors, offset = [], [], [], 0
-    for m in meshes:
-        verts.append(m.verts)
-        faces.append(m.faces + offset)
-        c = m.vert_colors
-        if c is None:
-            c = torch.tensor(default_color, dtype=m.verts.dtype, device=m.device).expand(m.num_verts, 3)
-        colors.append(c)
-        offset += m.num_verts
-    return Mesh(torch.cat(verts), torch.cat(faces), vert_colors=torch.cat(colors))
