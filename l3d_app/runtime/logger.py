@@ -13,7 +13,6 @@ import time
 from typing import Any, Mapping, Optional
 
 import numpy as np
-import torch
 from torch.utils.tensorboard import SummaryWriter
 from torch.utils.tensorboard.summary import hparams as hparams_summary
 

@@ -55,7 +55,8 @@ def dolly(cfg, ctx) -> dict:
         front = render_frames(renderer, subject, cams, int(cfg.batch_frames), desc="dolly subject")
         frames = front["image"]
         if cfg.backdrop:
-            back = render_frames(renderer, pillar_backdrop(device=ctx.device), cams,
+            flat = RENDERERS.build({**cfg.renderer, "shading": "flat"})
+            back = render_frames(flat, pillar_backdrop(device=ctx.device), cams,
                                  int(cfg.batch_frames), desc="dolly backdrop")
             frames = composite_by_depth(front, back, background)
     seconds = ctx.stopwatch.stages["render"]

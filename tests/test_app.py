@@ -1,0 +1,99 @@
+"""End-to-end: the app through Hydra's compose API and through main.py itself."""
+
+import json
+import os
+import subprocess
+import sys
+
+import imageio.v2 as imageio
+import pytest
+
+from conftest import REPO
+from l3d_app.app import run_task
+from l3d_app.errors import UserError
+
+
+def test_render360_writes_gif_metrics_and_events(compose, tmp_path):
+    cfg = compose("image_size=32", "num_frames=4", "batch_frames=3")
+    run_task(cfg, out_dir=tmp_path)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    for key in ("seconds", "frames_per_second", "num_frames", "n_faces", "coverage"):
+        assert key in metrics
+    assert metrics["num_frames"] == 4 and 0.02 < metrics["coverage"] < 0.9
+    frames = imageio.mimread(tmp_path / "turntable.gif")
+    assert len(frames) == 4 and frames[0].shape[:2] == (32, 32)
+    assert any(name.startswith("events.out.tfevents") for name in os.listdir(tmp_path))
+
+
+def test_objective_is_returned_and_checked(compose, tmp_path):
+    value = run_task(compose("image_size=16", "num_frames=2", "objective=coverage"), out_dir=tmp_path)
+    assert value == json.loads((tmp_path / "metrics.json").read_text())["coverage"]
+    with pytest.raises(UserError, match="objective 'psnr'"):
+        run_task(compose("image_size=16", "num_frames=2", "objective=psnr"), out_dir=tmp_path)
+
+
+@pytest.mark.parametrize("override", ["num_frames=0", "image_size=-4", "fov=0"])
+def test_bad_sizes_are_user_errors(compose, tmp_path, override):
+    with pytest.raises(UserError):
+        run_task(compose("image_size=16", "num_frames=2", override), out_dir=tmp_path)
+    assert not (tmp_path / "metrics.json").exists()
+
+
+def test_unknown_data_key_is_rejected(compose, tmp_path):
+    with pytest.raises(UserError, match="unknown key 'colour'"):
+        run_task(compose("image_size=16", "num_frames=2", "+data.colour=red"), out_dir=tmp_path)
+
+
+def test_dolly_keeps_subject_width(compose, tmp_path):
+    """The subject's projected width is constant across the zoom (within 2%)."""
+    cfg = compose("task=dolly", "data.scene=icosphere", "image_size=128", "num_frames=6",
+                  "backdrop=false", "renderer.antialias=2", "fov_start=10", "fov_end=90")
+    metrics = (run_task(cfg, out_dir=tmp_path), json.loads((tmp_path / "metrics.json").read_text()))[1]
+    assert metrics["subject_width_spread"] < 0.02
+    assert metrics["subject_width_px"] == pytest.approx(0.45 * 128, rel=0.03)
+    assert len(imageio.mimread(tmp_path / "dolly.gif")) == 6
+
+
+def main_py(*args, cwd=None):
+    env = dict(os.environ, L3D_NO_PROGRESS="1")
+    return subprocess.run([sys.executable, str(REPO / "main.py"), *args], cwd=cwd or REPO,
+                          capture_output=True, text=True, env=env, timeout=300)
+
+
+def test_cli_dolly_with_backdrop(tmp_path):
+    out = main_py("task=dolly", "num_frames=3", "image_size=48", f"hydra.run.dir={tmp_path}")
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "dolly.gif").exists() and (tmp_path / "metrics.json").exists()
+
+
+def test_cli_multirun_writes_one_directory_per_job(tmp_path):
+    out = main_py("-m", "task=render360", "image_size=16,24", "num_frames=2",
+                  f"hydra.sweep.dir={tmp_path}")
+    assert out.returncode == 0, out.stderr
+    sizes = sorted(json.loads((tmp_path / str(i) / "metrics.json").read_text())["image_size"]
+                   for i in range(2))
+    assert sizes == [16, 24]
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["task=nope"], "task"),
+    (["image_sise=64"], "image_sise"),
+    (["data=mesh"], "data.path"),
+    (["data=mesh", "data.path=/no/such/mesh.obj"], "not found"),
+    (["data=builtin", "data.scene=teapot"], "teapot"),
+])
+def test_cli_bad_input_is_one_clear_line(tmp_path, args, needle):
+    out = main_py(*args, "num_frames=2", "image_size=16", f"hydra.run.dir={tmp_path}")
+    assert out.returncode != 0
+    assert needle in out.stderr
+    assert "Traceback" not in out.stderr
+    assert not (tmp_path / "metrics.json").exists()
+
+
+def test_cli_malformed_obj_exits_2(tmp_path):
+    bad = tmp_path / "bad.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nf 1 2 7\n")
+    out = main_py("data=mesh", f"data.path={bad}", "num_frames=2", "image_size=16",
+                  f"hydra.run.dir={tmp_path / 'run'}")
+    assert out.returncode == 2
+    assert len(out.stderr.strip().splitlines()) == 1, out.stderr
