@@ -97,3 +97,12 @@ def test_cli_malformed_obj_exits_2(tmp_path):
                   f"hydra.run.dir={tmp_path / 'run'}")
     assert out.returncode == 2
     assert len(out.stderr.strip().splitlines()) == 1, out.stderr
+
+
+@pytest.mark.parametrize("overrides", [["camera=side_view"], ["camera=relative", "camera.translation=[0,0,2]"],
+                                       ["retexture.enabled=true", "retexture.axis=y"]])
+def test_render360_camera_and_retexture_options(compose, tmp_path, overrides):
+    run_task(compose("image_size=24", "num_frames=2", *overrides), out_dir=tmp_path)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["num_frames"] == (2 if "retexture" in overrides[0] else 1)
+    assert metrics["coverage"] > 0.01 and (tmp_path / "frame0.png").exists()

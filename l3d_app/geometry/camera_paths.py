@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import math
 from typing import Sequence, Tuple
 
 import torch
 
 from l3d_app.errors import UserError
-from l3d_app.geometry.cameras import Cameras, look_at
+from l3d_app.geometry.cameras import Cameras, from_pytorch3d, look_at
+from l3d_app.geometry.transforms import euler_xyz
+from l3d_app.registry import CAMERA_PATHS
 
 
+@CAMERA_PATHS.register("turntable")
 def turntable(num_frames: int, distance: float, elevation: float, fov: float, image_size: int,
               at: Sequence[float] = (0.0, 0.0, 0.0), device=None) -> Cameras:
     """``num_frames`` cameras evenly spaced in azimuth over 360 degrees (the last frame
@@ -58,3 +62,25 @@ def dolly_zoom(num_frames: int, fov_range: Tuple[float, float], radius: float, f
     dist = dolly_distance(fov, radius, fraction)
     R, t = look_at(dist, elevation, azimuth, at=at, device=device)
     return Cameras.from_fov(R, t, fov, image_size, image_size), dist
+
+
+@CAMERA_PATHS.register("relative")
+def relative_camera(rotation_deg: Sequence[float] = (0.0, 0.0, 0.0),
+                    translation: Sequence[float] = (0.0, 0.0, 0.0), base_distance: float = 3.0,
+                    fov: float = 60.0, image_size: int = 256, device=None) -> Cameras:
+    """One camera: a relative rotation and translation applied to a base camera.
+
+    In PyTorch3D terms (the course's), the base camera has ``R0 = I`` and
+    ``T0 = (0, 0, base_distance)``: it sits at world (0, 0, -base_distance) looking
+    along +Z. The new camera is ``R = R_rel @ R0``, ``T = R_rel @ T0 + T_rel`` with
+    ``R_rel = euler_xyz(rotation_deg)`` and ``T_rel = translation`` (world units), e.g.
+    rotation_deg=(0, 0, -90) spins the image about the view axis, translation=(0, 0, 2)
+    moves the camera back by 2.
+    """
+    if not 0 < fov < 180:
+        raise UserError(f"fov must be in (0, 180) degrees, got {fov}")
+    r_rel = euler_xyz(rotation_deg)
+    t0 = torch.tensor([0.0, 0.0, float(base_distance)])
+    T = r_rel @ t0 + torch.as_tensor(translation, dtype=torch.float32)
+    ndc_focal = 1.0 / math.tan(math.radians(fov) / 2)  # square image: NDC spans [-1, 1]
+    return from_pytorch3d(r_rel, T, focal=ndc_focal, image_size=(image_size, image_size)).to(device)

@@ -1,34 +1,53 @@
-"""render360: a 360-degree turntable gif of a mesh (built-in scene or any mesh file)."""
+"""render360: a turntable gif of a mesh or point cloud (built-in scene, file, or surface).
+
+The camera path comes from the ``camera`` group (a 360-degree turntable by default, or a
+single relative view); meshes go through ``renderer``, point clouds through
+``point_renderer``.
+"""
 
 from __future__ import annotations
 
-from l3d_app.geometry.camera_paths import turntable
-from l3d_app.registry import DATASETS, RENDERERS, TASKS
-from l3d_app.runtime.media import save_gif
+from l3d_app.errors import UserError
+from l3d_app.geometry.mesh import Mesh
+from l3d_app.geometry.mesh_colors import gradient_colors
+from l3d_app.registry import CAMERA_PATHS, DATASETS, RENDERERS, TASKS
+from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.tasks.common import render_frames, require_positive
+
+
+def build_scene(cfg, device):
+    """The data source's Mesh or PointCloud, re-textured if ``retexture.enabled``."""
+    scene = DATASETS.build(cfg.data, device=device)
+    if cfg.retexture.enabled:
+        if not isinstance(scene, Mesh):
+            raise UserError("retexture applies to meshes; this data source gives a point cloud")
+        scene = gradient_colors(scene, cfg.retexture.axis, cfg.retexture.color1, cfg.retexture.color2)
+    return scene
 
 
 @TASKS.register("render360")
 def render360(cfg, ctx) -> dict:
-    """Render ``num_frames`` views around the mesh; write turntable.gif; log the frames."""
+    """Render the camera path's views; write turntable.gif (+ first frame PNG); log frames."""
     require_positive(cfg, "image_size", "num_frames", "fps", "distance", "fov", "batch_frames")
-    mesh = DATASETS.build(cfg.data, device=ctx.device)
-    renderer = RENDERERS.build(cfg.renderer)
-    cams = turntable(int(cfg.num_frames), float(cfg.distance), float(cfg.elevation),
-                     float(cfg.fov), int(cfg.image_size), device=ctx.device)
+    scene = build_scene(cfg, ctx.device)
+    is_mesh = isinstance(scene, Mesh)
+    renderer = RENDERERS.build(cfg.renderer if is_mesh else cfg.point_renderer)
+    cams = CAMERA_PATHS.build(cfg.camera, device=ctx.device)
     with ctx.stopwatch.stage("render"):
-        out = render_frames(renderer, mesh, cams, int(cfg.batch_frames), desc="render360")
+        out = render_frames(renderer, scene, cams, int(cfg.batch_frames), desc="render360")
     seconds = ctx.stopwatch.stages["render"]
     save_gif(ctx.path("turntable.gif"), out["image"], fps=float(cfg.fps))
+    save_png(ctx.path("frame0.png"), out["image"][0])
     ctx.logger.image_sequence("render360/frames", out["image"])
     coverage = float(out["alpha"].mean())
     ctx.logger.log_scalars({"render360/frames_per_second": len(cams) / seconds,
                             "render360/coverage": coverage}, step=0)
+    size = {"n_verts": scene.num_verts, "n_faces": scene.num_faces} if is_mesh else \
+        {"n_points": scene.num_points}
     return {
         "num_frames": len(cams),
         "image_size": int(cfg.image_size),
-        "n_verts": mesh.num_verts,
-        "n_faces": mesh.num_faces,
+        **size,
         "render_seconds": round(seconds, 4),
         "frames_per_second": round(len(cams) / seconds, 3),
         "coverage": round(coverage, 5),
