@@ -1,0 +1,238 @@
+"""The shared training loop: progress bar, logging, evaluation, checkpoints, resume, NaN guard.
+
+Every training task hands :func:`train` a :class:`Trainable` (its modules/tensors and
+optimiser) and two callbacks, and gets, for free:
+
+* a tqdm bar and TensorBoard scalars of the step's logs (against step; wall time via
+  ``time/seconds`` and TensorBoard's relative axis);
+* evaluation every ``eval_every`` steps and at the end (error figures next to seconds);
+* a NaN/Inf guard: a non-finite loss or gradient skips the step (nothing is applied) and
+  is logged; after ``max_bad_steps`` consecutive failures the last good state is restored;
+* checkpoints (``checkpoint.pt``, written atomically, never with non-finite parameters)
+  every ``checkpoint_every`` steps, at the end, and on SIGINT/SIGTERM, after which the
+  loop stops cleanly and the task writes its metrics so far;
+* resume: with ``resume=True`` the loop continues from ``checkpoint.pt`` in the run
+  directory (same RNG state, so an interrupted and resumed CPU run ends like an
+  uninterrupted one).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import signal
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, Iterator, List, Optional
+
+import torch
+
+from l3d_app.runtime.files import atomic_path
+from l3d_app.runtime.progress import progress
+
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclass
+class Trainable:
+    """What a task trains: named modules (or ParameterDicts) and their optimiser.
+
+    ``extra`` holds any other picklable state to checkpoint (e.g. an occupancy grid as a
+    tensor, a scheduler); objects with ``state_dict``/``load_state_dict`` are handled.
+    """
+
+    modules: Dict[str, torch.nn.Module]
+    optimizer: torch.optim.Optimizer
+    extra: Dict[str, Any] = field(default_factory=dict)
+
+    def parameters(self) -> List[torch.nn.Parameter]:
+        return [p for m in self.modules.values() for p in m.parameters()]
+
+    def state_dict(self) -> Dict[str, Any]:
+        return {
+            "modules": {k: m.state_dict() for k, m in self.modules.items()},
+            "optimizer": self.optimizer.state_dict(),
+            "extra": {k: (v.state_dict() if hasattr(v, "state_dict") else v) for k, v in self.extra.items()},
+        }
+
+    def load_state_dict(self, state: Dict[str, Any]) -> None:
+        for k, m in self.modules.items():
+            m.load_state_dict(state["modules"][k])
+        self.optimizer.load_state_dict(state["optimizer"])
+        for k, v in state.get("extra", {}).items():
+            if k in self.extra and hasattr(self.extra[k], "load_state_dict"):
+                self.extra[k].load_state_dict(v)
+            elif k in self.extra and torch.is_tensor(self.extra[k]):
+                self.extra[k].copy_(v)
+            else:
+                self.extra[k] = v
+
+    def all_finite(self) -> bool:
+        return all(bool(torch.isfinite(p).all()) for p in self.parameters())
+
+
+@dataclass
+class TrainResult:
+    """Where the loop ended: last step done, last evaluation, and why it stopped."""
+
+    step: int
+    metrics: Dict[str, float]
+    interrupted: bool
+    skipped_steps: int
+    restores: int
+
+
+class _StopFlag:
+    """Turns SIGINT/SIGTERM into a flag the loop checks after each step."""
+
+    def __init__(self):
+        self.signal: Optional[int] = None
+
+    @contextmanager
+    def installed(self) -> Iterator["_StopFlag"]:
+        previous = {}
+
+        def handler(signum, _frame):
+            self.signal = signum
+
+        try:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                previous[sig] = signal.signal(sig, handler)
+        except ValueError:  # not the main thread: no handlers, no clean stop
+            previous = {}
+        try:
+            yield self
+        finally:
+            for sig, old in previous.items():
+                signal.signal(sig, old)
+
+
+def _rng_state(generator: torch.Generator) -> Dict[str, Any]:
+    return {"generator": generator.get_state(), "torch": torch.get_rng_state()}
+
+
+def _set_rng_state(generator: torch.Generator, state: Dict[str, Any]) -> None:
+    generator.set_state(state["generator"])
+    torch.set_rng_state(state["torch"])
+
+
+def save_checkpoint(path: Path, trainable: Trainable, step: int, generator: torch.Generator,
+                    history: Dict[str, Any]) -> bool:
+    """Write a checkpoint atomically; refuses (returns False) if any parameter is non-finite."""
+    if not trainable.all_finite():
+        return False
+    state = {"step": step, "trainable": trainable.state_dict(), "rng": _rng_state(generator),
+             "history": history}
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+    return True
+
+
+def load_checkpoint(path: Path, trainable: Trainable, generator: torch.Generator) -> Dict[str, Any]:
+    """Restore a checkpoint written by :func:`save_checkpoint`; returns its dict."""
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    trainable.load_state_dict(state["trainable"])
+    _set_rng_state(generator, state["rng"])
+    return state
+
+
+def _grads_finite(params: List[torch.nn.Parameter]) -> bool:
+    return all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in params)
+
+
+def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Tensor]],
+          iters: int, eval_fn: Optional[Callable[[int], Dict[str, float]]] = None,
+          eval_every: int = 0, checkpoint_every: int = 0, resume: bool = False,
+          max_bad_steps: int = 5, desc: str = "train", log_every: int = 10,
+          after_step: Optional[Callable[[int], None]] = None) -> TrainResult:
+    """Run ``iters`` optimisation steps.
+
+    Args:
+        ctx: the run's :class:`~l3d_app.runtime.context.RunContext`.
+        trainable: modules + optimiser (+ extra state) to train and checkpoint.
+        step_fn: ``step_fn(step) -> {"loss": scalar tensor, other logs...}``; computes the
+            loss (the loop calls ``zero_grad``, ``backward`` and ``optimizer.step``).
+        iters: total number of steps (a resumed run continues up to the same total).
+        eval_fn: ``eval_fn(step) -> {metric: float}``, called every ``eval_every`` steps
+            and after the last step; logged under ``eval/`` with ``time/seconds``.
+        checkpoint_every: steps between checkpoints (0: only at the end / on a signal).
+        resume: continue from ``checkpoint.pt`` in ``ctx.out_dir`` when it exists.
+        max_bad_steps: consecutive non-finite steps before the last good state is restored.
+        after_step: called after each applied step (e.g. to update an occupancy grid).
+    """
+    params = trainable.parameters()
+    ckpt_path = ctx.out_dir / CHECKPOINT
+    history: Dict[str, Any] = {"eval": []}
+    start = 0
+    if resume and ckpt_path.exists():
+        state = load_checkpoint(ckpt_path, trainable, ctx.generator)
+        start, history = int(state["step"]), state["history"]
+        ctx.logger.text("train/resume", f"resumed from step {start}")
+    good_state = copy.deepcopy(trainable.state_dict())
+    snapshot_every = checkpoint_every or max(1, iters // 20)
+    bad_in_a_row = skipped = restores = 0
+    metrics: Dict[str, float] = dict(history["eval"][-1][1]) if history["eval"] else {}
+    step = start
+    stop = _StopFlag()
+    with stop.installed():
+        bar = progress(range(start, iters), desc=desc, total=iters, initial=start)
+        for step in bar:
+            trainable.optimizer.zero_grad(set_to_none=True)
+            logs = step_fn(step)
+            loss = logs["loss"]
+            ok = bool(torch.isfinite(loss).all())
+            if ok:
+                loss.backward()
+                ok = _grads_finite(params)
+            if ok:
+                trainable.optimizer.step()
+                ok = trainable.all_finite()
+            if not ok:
+                skipped += 1
+                bad_in_a_row += 1
+                trainable.optimizer.zero_grad(set_to_none=True)
+                ctx.logger.scalar("guard/skipped_steps", skipped, step)
+                if bad_in_a_row >= max_bad_steps or not trainable.all_finite():
+                    trainable.load_state_dict(copy.deepcopy(good_state))
+                    restores += 1
+                    bad_in_a_row = 0
+                    ctx.logger.scalar("guard/restores", restores, step)
+            else:
+                bad_in_a_row = 0
+                if after_step is not None:
+                    after_step(step)
+                if step % log_every == 0 or step == iters - 1:
+                    values = {f"train/{k}": float(v.detach()) for k, v in logs.items()
+                              if torch.is_tensor(v) and v.numel() == 1}
+                    ctx.logger.log_scalars(values, step)
+                    bar.set_postfix(loss=f"{float(loss.detach()):.4g}")
+            done = step + 1
+            if eval_fn is not None and eval_every and done % eval_every == 0 and done < iters:
+                metrics = _evaluate(ctx, eval_fn, done, history)
+            if ok and done % snapshot_every == 0:
+                good_state = copy.deepcopy(trainable.state_dict())
+            if checkpoint_every and done % checkpoint_every == 0:
+                save_checkpoint(ckpt_path, trainable, done, ctx.generator, history)
+            if stop.signal is not None:
+                break
+        bar.close()
+    done = step + 1 if iters > start else start
+    interrupted = stop.signal is not None and done < iters
+    if eval_fn is not None and (not history["eval"] or history["eval"][-1][0] != done):
+        metrics = _evaluate(ctx, eval_fn, done, history)
+    save_checkpoint(ckpt_path, trainable, done, ctx.generator, history)
+    if interrupted:
+        ctx.logger.text("train/interrupted", f"stopped by signal {stop.signal} at step {done}")
+    return TrainResult(step=done, metrics=metrics, interrupted=interrupted,
+                       skipped_steps=skipped, restores=restores)
+
+
+def _evaluate(ctx, eval_fn, step: int, history: Dict[str, Any]) -> Dict[str, float]:
+    with torch.no_grad():
+        metrics = {k: float(v) for k, v in eval_fn(step).items()}
+    metrics["seconds"] = ctx.stopwatch.elapsed
+    history["eval"].append((step, metrics))
+    ctx.logger.log_scalars({f"eval/{k}": v for k, v in metrics.items()
+                            if math.isfinite(v) and k != "seconds"}, step)
+    return metrics

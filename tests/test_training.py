@@ -1,0 +1,97 @@
+"""The shared training loop: NaN guard, checkpoints, resume, clean stop on a signal."""
+
+import os
+import signal
+
+import torch
+
+from l3d_app.runtime.context import RunContext
+from l3d_app.runtime.logger import RunLogger
+from l3d_app.runtime.seed import seed_everything
+from l3d_app.runtime.training import CHECKPOINT, Trainable, train
+
+
+def make_ctx(out_dir, seed=0):
+    return RunContext(out_dir=out_dir, device=torch.device("cpu"), generator=seed_everything(seed),
+                      logger=RunLogger(out_dir, enabled=False))
+
+
+def make_problem(lr=0.1):
+    torch.manual_seed(0)
+    model = torch.nn.Linear(3, 1)
+    return model, Trainable({"model": model}, torch.optim.Adam(model.parameters(), lr=lr))
+
+
+def regression_step(ctx, model, poison=()):
+    target_w = torch.tensor([[1.0, -2.0, 0.5]])
+
+    def step(i):
+        x = torch.randn(16, 3, generator=ctx.generator)  # randomness from the run's generator
+        loss = ((model(x) - x @ target_w.T) ** 2).mean()
+        if i in poison:
+            loss = loss * float("nan")
+        return {"loss": loss}
+    return step
+
+
+def test_converges_and_evaluates(tmp_path):
+    ctx = make_ctx(tmp_path)
+    model, trainable = make_problem()
+    result = train(ctx, trainable, regression_step(ctx, model), iters=300,
+                   eval_fn=lambda s: {"w_err": float((model.weight - torch.tensor([[1.0, -2.0, 0.5]])).abs().max())},
+                   eval_every=100)
+    assert result.metrics["w_err"] < 0.05 and result.step == 300 and not result.interrupted
+    assert (tmp_path / CHECKPOINT).exists()
+
+
+def test_nan_steps_are_skipped_not_applied(tmp_path):
+    ctx = make_ctx(tmp_path)
+    model, trainable = make_problem()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    result = train(ctx, trainable, regression_step(ctx, model, poison={0, 1}), iters=2)
+    assert result.skipped_steps == 2
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, before[k])
+
+
+def test_repeated_failures_restore_last_good_state_and_checkpoints_stay_finite(tmp_path):
+    ctx = make_ctx(tmp_path)
+    model, trainable = make_problem()
+
+    def step(i):
+        if i >= 5:  # from step 5 on the parameters get corrupted behind the optimiser's back
+            with torch.no_grad():
+                model.weight.fill_(float("inf"))
+        return {"loss": (model.weight ** 2).sum() + model.bias.sum()}
+    result = train(ctx, trainable, step, iters=12, checkpoint_every=1, max_bad_steps=3)
+    assert result.restores >= 1 and result.skipped_steps == 7
+    assert torch.isfinite(model.weight).all()
+    state = torch.load(tmp_path / CHECKPOINT, weights_only=False)
+    for tensor in state["trainable"]["modules"]["model"].values():
+        assert torch.isfinite(tensor).all()
+
+
+def test_interrupt_then_resume_matches_uninterrupted_run(tmp_path):
+    full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
+    full_dir.mkdir(), cut_dir.mkdir()
+    ctx = make_ctx(full_dir, seed=3)
+    model, trainable = make_problem()
+    train(ctx, trainable, regression_step(ctx, model), iters=40)
+    reference = model.weight.detach().clone()
+
+    ctx = make_ctx(cut_dir, seed=3)
+    model, trainable = make_problem()
+    inner = regression_step(ctx, model)
+
+    def step_with_sigint(i):
+        if i == 17:
+            os.kill(os.getpid(), signal.SIGINT)  # handled: the loop stops after this step
+        return inner(i)
+    first = train(ctx, trainable, step_with_sigint, iters=40)
+    assert first.interrupted and first.step == 18
+
+    ctx = make_ctx(cut_dir, seed=99)  # a fresh process: state must come from the checkpoint
+    model, trainable = make_problem()
+    second = train(ctx, trainable, regression_step(ctx, model), iters=40, resume=True)
+    assert second.step == 40 and not second.interrupted
+    torch.testing.assert_close(model.weight.detach(), reference, rtol=0, atol=0)
