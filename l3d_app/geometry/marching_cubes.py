@@ -1,0 +1,116 @@
+"""Level sets of an SDF as triangle meshes: a grid evaluated in chunks + marching cubes.
+
+``sdf_to_mesh(sdf, resolution)`` samples ``sdf`` on a ``resolution^3`` grid of points spanning
+``bounds`` (world units), runs :func:`skimage.measure.marching_cubes` (Lewiner) at ``level`` and
+returns a :class:`~l3d_app.geometry.mesh.Mesh` in world coordinates whose faces are
+counter-clockwise seen from outside (right-hand normals point to increasing SDF, i.e. out of
+the solid ``sdf < level``), as every Mesh in this library.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from l3d_app.errors import UserError
+from l3d_app.geometry.mesh import Mesh
+
+
+def grid_points(lo: Sequence[float], hi: Sequence[float], resolution: int,
+                device=None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """(R, R, R, 3) grid of world points, ``[i, j, k] = lo + (i, j, k) * (hi - lo) / (R - 1)``."""
+    axes = [torch.linspace(float(a), float(b), resolution, device=device, dtype=dtype) for a, b in zip(lo, hi)]
+    return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
+
+
+@torch.no_grad()
+def evaluate_grid(sdf: Callable[[torch.Tensor], torch.Tensor], lo: Sequence[float], hi: Sequence[float],
+                  resolution: int, chunk_size: int = 1 << 18, device=None,
+                  dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """(R, R, R) SDF values on :func:`grid_points`, evaluated in slabs of about ``chunk_size``
+    points (whole ``[i0:i1, :, :]`` slabs, built by broadcasting), so peak memory is
+    O(max(chunk_size, R^2)) points besides the (R, R, R) result.
+    """
+    R = int(resolution)
+    axes = [torch.linspace(float(a), float(b), R, device=device, dtype=dtype) for a, b in zip(lo, hi)]
+    out = torch.empty((R, R, R), device=device, dtype=dtype)
+    rows = max(1, int(chunk_size) // (R * R))
+    for i0 in range(0, R, rows):
+        slab = torch.stack(torch.meshgrid(axes[0][i0:i0 + rows], axes[1], axes[2], indexing="ij"), dim=-1)
+        out[i0:i0 + rows] = sdf(slab).to(dtype)
+    return out
+
+
+def padded_bounds(bounds: Tuple[Sequence[float], Sequence[float]], resolution: int,
+                  margin: float = 0.05) -> Tuple[Tuple[float, ...], Tuple[float, ...]]:
+    """``bounds`` grown on each side by ``margin`` x the largest extent plus one unpadded grid
+    cell, so the grid's outer layer lies strictly outside the surface and the mesh closes."""
+    lo = np.asarray(bounds[0], dtype=np.float64)
+    hi = np.asarray(bounds[1], dtype=np.float64)
+    extent = float((hi - lo).max())
+    pad = margin * extent + extent / (max(int(resolution), 2) - 1)
+    return tuple((lo - pad).tolist()), tuple((hi + pad).tolist())
+
+
+def sdf_to_mesh(sdf: Callable[[torch.Tensor], torch.Tensor], resolution: int = 64,
+                bounds: Optional[Tuple[Sequence[float], Sequence[float]]] = None, level: float = 0.0,
+                colors: Optional[str] = "normal", chunk_size: int = 1 << 18, device=None,
+                dtype: torch.dtype = torch.float32) -> Mesh:
+    """Triangle mesh of ``{p : sdf(p) = level}`` inside ``bounds``.
+
+    Args:
+        sdf: callable (..., 3) -> (...), positive outside (e.g. :mod:`l3d_app.geometry.sdf`).
+        resolution: grid points per axis (>= 3); the spacing is ``(hi - lo) / (resolution - 1)``.
+        bounds: ``(lo, hi)`` world box sampled by the grid. Default: ``sdf.bounds()`` grown by
+            :func:`padded_bounds` (the grid's outer layer stays outside the surface).
+        level: iso-value.
+        colors: ``"normal"`` for vertex colours ``0.5 + 0.5 * vertex normal``, or None.
+        chunk_size: SDF evaluations per call.
+        device, dtype: where and in which precision the SDF is evaluated.
+
+    Returns:
+        Mesh with float32 verts (V, 3) in world units and faces (F, 3), counter-clockwise seen
+        from the side where ``sdf > level`` (outward for an SDF).
+
+    Raises:
+        UserError: if the level set does not cross the grid (all values on one side of it).
+    """
+    R = int(resolution)
+    if R < 3:
+        raise UserError(f"marching cubes resolution must be >= 3, got {resolution}")
+    if bounds is None:
+        if not hasattr(sdf, "bounds"):
+            raise UserError("sdf_to_mesh needs bounds=(lo, hi) for an SDF without a bounds() method")
+        bounds = padded_bounds(sdf.bounds(), R)
+    lo = [float(x) for x in bounds[0]]
+    hi = [float(x) for x in bounds[1]]
+    if len(lo) != 3 or len(hi) != 3 or not all(b > a for a, b in zip(lo, hi)):
+        raise UserError(f"bounds must be (lo, hi) with lo < hi per axis, got {bounds}")
+    values = evaluate_grid(sdf, lo, hi, R, chunk_size, device, dtype)
+    volume = values.detach().cpu().double().numpy()
+    vmin, vmax = float(np.nanmin(volume)), float(np.nanmax(volume))
+    if not np.isfinite(volume).all():
+        raise UserError("the SDF returned NaN or Inf on the marching-cubes grid")
+    if not (vmin < level < vmax):
+        raise UserError(f"the level set sdf = {level} is empty inside bounds {tuple(lo)}..{tuple(hi)} "
+                        f"(SDF values on the grid lie in [{vmin:.4g}, {vmax:.4g}])")
+    from skimage.measure import marching_cubes
+
+    spacing = tuple((b - a) / (R - 1) for a, b in zip(lo, hi))
+    # The volume is indexed [i, j, k] = (x, y, z), so vertex columns are x, y, z.
+    # Winding: with skimage's default gradient_direction='descent' the right-hand (cross
+    # product) normal of each face points toward INcreasing values -- outward for an SDF that
+    # is negative inside; 'ascent' would turn every face inward. (Checked in
+    # tests/test_marching_cubes.py by the signed volume, which must be positive.)
+    verts, faces, _, _ = marching_cubes(volume, level=level, spacing=spacing, gradient_direction="descent")
+    verts = torch.from_numpy(np.ascontiguousarray(verts)).to(torch.float32) + torch.tensor(lo, dtype=torch.float32)
+    faces = torch.from_numpy(np.ascontiguousarray(faces)).to(torch.int64)
+    out_device = values.device if device is None else device
+    mesh = Mesh(verts=verts.to(out_device), faces=faces.to(out_device))
+    if colors == "normal":
+        mesh = Mesh(verts=mesh.verts, faces=mesh.faces, vert_colors=(0.5 + 0.5 * mesh.vertex_normals()).clamp(0, 1))
+    elif colors is not None:
+        raise UserError(f"colors must be 'normal' or None, got {colors!r}")
+    return mesh
