@@ -12,8 +12,15 @@ MODULES = (
     "l3d_app.data.scenes",
     "l3d_app.render.mesh_renderer",
     "l3d_app.render.soft_rasterize",
+    "l3d_app.render.points",
+    "l3d_app.data.rgbd_views",
     "l3d_app.tasks.render360",
     "l3d_app.tasks.dolly",
+    "l3d_app.data.surfaces",
+    "l3d_app.tasks.surface_tradeoff",
+    "l3d_app.data.box_images",
+    "l3d_app.render.volume",
+    "l3d_app.tasks.box",
 )
 
 

@@ -18,6 +18,7 @@ from l3d_app.geometry import primitives as P
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.mesh_io import load_mesh
 from l3d_app.registry import DATASETS
+from l3d_app.runtime.paths import resolve_path
 
 RED, GREEN, BLUE = (0.90, 0.10, 0.10), (0.10, 0.75, 0.15), (0.10, 0.25, 0.95)
 YELLOW, WHITE, GREY = (0.95, 0.80, 0.10), (0.92, 0.92, 0.88), (0.60, 0.60, 0.60)
@@ -88,7 +89,7 @@ def mesh_file(path: str = None, keep_vertex_order: bool = True, normalize: bool 
     if path is None or not str(path).strip():
         raise UserError("data=mesh needs a file: add data.path=FILE "
                         "(.obj, .ply, .glb, .gltf, .off or .stl)")
-    mesh = load_mesh(str(path).strip(), keep_vertex_order=keep_vertex_order)
+    mesh = load_mesh(str(resolve_path(str(path).strip())), keep_vertex_order=keep_vertex_order)
     if normalize:
         mesh = mesh.normalized(1.0)
     return mesh if device is None else mesh.to(device)

@@ -11,7 +11,7 @@ Both colour the surface by its normal (``0.5 + 0.5 n``). Shapes are centred at t
 
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import Sequence
 
 import torch
 

@@ -100,6 +100,14 @@ class Sphere(SDF):
         return f"Sphere(radius={self.radius}, center={self.center})"
 
 
+def box_sdf(points: torch.Tensor, center: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """Exact signed distance (...) from points (..., 3) to the axis-aligned box of full side
+    lengths ``size`` (3,) around ``center`` (3,); differentiable in all three (the box task
+    learns ``center`` and ``size``). Formula: see :class:`Box`."""
+    q = (points - center).abs() - size / 2
+    return safe_norm(q.clamp_min(0.0)) + q.max(dim=-1).values.clamp_max(0.0)
+
+
 class Box(SDF):
     """Axis-aligned box with full side lengths ``size`` around ``center`` (exact).
 
@@ -113,11 +121,7 @@ class Box(SDF):
         self.center = _vec3(center, "center")
 
     def distance(self, points: torch.Tensor) -> torch.Tensor:
-        half = points.new_tensor(self.size) / 2
-        q = (points - points.new_tensor(self.center)).abs() - half
-        outside = safe_norm(q.clamp_min(0.0))
-        inside = q.max(dim=-1).values.clamp_max(0.0)
-        return outside + inside
+        return box_sdf(points, points.new_tensor(self.center), points.new_tensor(self.size))
 
     def bounds(self) -> Bounds:
         return (tuple(c - s / 2 for c, s in zip(self.center, self.size)),
