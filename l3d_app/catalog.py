@@ -14,6 +14,7 @@ MODULES = (
     "l3d_app.render.soft_rasterize",
     "l3d_app.render.points",
     "l3d_app.data.rgbd_views",
+    "l3d_app.data.mesh_points",
     "l3d_app.tasks.render360",
     "l3d_app.tasks.dolly",
     "l3d_app.data.surfaces",

@@ -106,3 +106,13 @@ def test_render360_camera_and_retexture_options(compose, tmp_path, overrides):
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["num_frames"] == (2 if "retexture" in overrides[0] else 1)
     assert metrics["coverage"] > 0.01 and (tmp_path / "frame0.png").exists()
+
+
+@pytest.mark.parametrize("data", [["data=mesh_points", "data.num_samples=3000", "data.color=normals"],
+                                  ["data=torus_parametric", "data.num_samples=3000"],
+                                  ["data=torus_implicit", "data.resolution=24"],
+                                  ["data=rgbd", "data.image_size=32", "data.num_views=2"]])
+def test_render360_surfaces_and_point_clouds(compose, tmp_path, data):
+    run_task(compose("image_size=32", "num_frames=2", *data), out_dir=tmp_path)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["coverage"] > 0.02 and (tmp_path / "turntable.gif").exists()

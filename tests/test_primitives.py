@@ -145,3 +145,9 @@ def test_mesh_source_needs_a_path(path):
 def test_mesh_source_from_registry_without_path_is_a_user_error():
     with pytest.raises(UserError, match="data.path"):
         DATASETS.build({"name": "mesh"})
+
+
+def test_builtin_tetrahedron_and_cube_counts():
+    tetra, box = builtin_scene("tetrahedron"), builtin_scene("cube")
+    assert (tetra.num_verts, tetra.num_faces) == (4, 4)
+    assert (box.num_verts, box.num_faces) == (8, 12)
