@@ -23,6 +23,7 @@ class RunContext:
     logger: RunLogger
     stopwatch: Stopwatch = field(default_factory=Stopwatch)
     params: Dict[str, Any] = field(default_factory=dict)
+    interrupted: bool = False  # set by the training loop on SIGINT/SIGTERM
 
     def path(self, name: str) -> Path:
         """A path inside the run directory (parent folders created)."""
@@ -34,6 +35,8 @@ class RunContext:
         """Write ``metrics.json`` (final figures + wall-clock ``seconds``) atomically."""
         out = dict(metrics)
         out.setdefault("seconds", round(self.stopwatch.elapsed, 4))
+        if self.interrupted:
+            out["interrupted"] = True
         out["device"] = str(self.device)
         write_json(self.path("metrics.json"), out)
         return out

@@ -223,6 +223,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
         metrics = _evaluate(ctx, eval_fn, done, history)
     save_checkpoint(ckpt_path, trainable, done, ctx.generator, history)
     if interrupted:
+        ctx.interrupted = True
         ctx.logger.text("train/interrupted", f"stopped by signal {stop.signal} at step {done}")
     return TrainResult(step=done, metrics=metrics, interrupted=interrupted,
                        skipped_steps=skipped, restores=restores)

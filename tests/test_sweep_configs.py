@@ -1,0 +1,38 @@
+"""Launcher and sweeper configs compose (skipped with a reason when a plugin is absent)."""
+
+import importlib.util
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from conftest import REPO
+
+
+def needs(module):
+    if importlib.util.find_spec(module) is None:
+        pytest.skip(f"optional plugin not installed: {module} (pip install -e '.[sweep]')")
+
+
+def compose_hydra(*overrides):
+    with initialize_config_dir(version_base="1.3", config_dir=str(REPO / "conf")):
+        return compose(config_name="config", overrides=list(overrides), return_hydra_config=True)
+
+
+def test_local_parallel_launcher_composes():
+    needs("hydra_plugins.hydra_joblib_launcher")
+    cfg = compose_hydra("hydra/launcher=local_parallel")
+    assert cfg.hydra.launcher.n_jobs == 2 and "JoblibLauncher" in cfg.hydra.launcher._target_
+
+
+def test_slurm_launcher_composes():
+    needs("hydra_plugins.hydra_submitit_launcher")
+    cfg = compose_hydra("hydra/launcher=slurm", "hydra.launcher.partition=gpu")
+    assert cfg.hydra.launcher.partition == "gpu" and "Slurm" in cfg.hydra.launcher._target_
+
+
+@pytest.mark.parametrize("sweeper, param", [("optuna_volsdf", "beta"), ("optuna_nerf", "lr")])
+def test_optuna_sweepers_compose(sweeper, param):
+    needs("hydra_plugins.hydra_optuna_sweeper")
+    cfg = compose_hydra(f"hydra/sweeper={sweeper}", "objective=psnr")
+    assert param in cfg.hydra.sweeper.params and cfg.hydra.sweeper.direction == "maximize"
+    assert cfg.objective == "psnr"
