@@ -13,13 +13,15 @@ optimiser) and two callbacks, and gets, for free:
   loop stops cleanly and the task writes its metrics so far;
 * resume: with ``resume=True`` the loop continues from ``checkpoint.pt`` in the run
   directory (same RNG state, so an interrupted and resumed CPU run ends like an
-  uninterrupted one).
+  uninterrupted one). For tests, ``L3D_STOP_AT_STEP=N`` in the environment acts as a
+  signal arriving during step N.
 """
 
 from __future__ import annotations
 
 import copy
 import math
+import os
 import signal
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -175,6 +177,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
     metrics: Dict[str, float] = dict(history["eval"][-1][1]) if history["eval"] else {}
     step = start
     stop = _StopFlag()
+    stop_at = int(os.environ["L3D_STOP_AT_STEP"]) if os.environ.get("L3D_STOP_AT_STEP") else None
     with stop.installed():
         bar = progress(range(start, iters), desc=desc, total=iters, initial=start)
         for step in bar:
@@ -214,6 +217,8 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                 good_state = copy.deepcopy(trainable.state_dict())
             if checkpoint_every and done % checkpoint_every == 0:
                 save_checkpoint(ckpt_path, trainable, done, ctx.generator, history)
+            if stop_at is not None and done == stop_at:
+                stop.signal = signal.SIGINT  # test hook: behave as if interrupted here
             if stop.signal is not None:
                 break
         bar.close()
