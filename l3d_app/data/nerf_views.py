@@ -1,0 +1,183 @@
+"""Posed multi-view image sets for radiance-field training, and the built-in one.
+
+:class:`MultiViewData` is what every NeRF data source returns (built-in, NeRF-synthetic
+``transforms_*.json`` folders in :mod:`l3d_app.data.nerf_formats`, the course truck).
+
+The built-in dataset (``data=nerf_builtin``) is rendered by our own mesh renderer
+(:class:`~l3d_app.render.mesh_renderer.MeshRenderer`, Lambert shading under a FIXED
+directional light, so appearance does not depend on the viewpoint) from a procedural scene
+with textured and thin parts: a checker-textured plinth, four thin coloured poles, a thin
+tilted ring and a colour-gradient sphere. Cameras look at the origin from a sphere:
+training views on a Fibonacci spiral over elevations [-10, 70] degrees, validation and
+test views on separate rings in between. It is generated on first use and cached in
+``cache_dir`` (one file per parameter set).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence, Tuple
+
+import torch
+
+from l3d_app.errors import UserError
+from l3d_app.geometry import primitives as P
+from l3d_app.geometry.cameras import Cameras, look_at_cameras, stack_cameras
+from l3d_app.geometry.mesh import Mesh
+from l3d_app.geometry.transforms import euler_xyz
+from l3d_app.registry import DATASETS
+from l3d_app.runtime.files import atomic_path
+from l3d_app.runtime.paths import resolve_path
+
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+
+
+@dataclass
+class MultiViewData:
+    """Posed images for a radiance field.
+
+    Attributes:
+        images: (N, H, W, 3) float32 in [0, 1] (composited on ``background``).
+        cameras: N :class:`Cameras` (internal OpenCV convention).
+        train, val, test: (n_split,) long view indices.
+        background: (3,) RGB in [0, 1] behind the scene.
+        scene_box: (2, 3) world box (min row, max row) that holds the scene.
+        name: where it came from.
+    """
+
+    images: torch.Tensor
+    cameras: Cameras
+    train: torch.Tensor
+    val: torch.Tensor
+    test: torch.Tensor
+    background: torch.Tensor
+    scene_box: torch.Tensor
+    name: str = ""
+
+    def to(self, device) -> "MultiViewData":
+        return MultiViewData(self.images.to(device), self.cameras.to(device), self.train, self.val, self.test,
+                             self.background.to(device), self.scene_box.to(device), self.name)
+
+    @property
+    def image_size(self) -> Tuple[int, int]:
+        """(H, W)."""
+        return self.cameras.height, self.cameras.width
+
+
+def background_rgb(background) -> torch.Tensor:
+    """'white' | 'black' | 3 numbers -> (3,) float tensor."""
+    if isinstance(background, str):
+        if background not in BACKGROUNDS:
+            raise UserError(f"background must be one of {', '.join(BACKGROUNDS)} or 3 numbers, got {background!r}")
+        background = BACKGROUNDS[background]
+    bg = torch.as_tensor(background, dtype=torch.float32).reshape(-1)
+    if bg.numel() != 3:
+        raise UserError(f"background must be 3 numbers (RGB), got {background}")
+    return bg
+
+
+# ----------------------------------------------------------- the procedural scene
+def checker_box(center: Sequence[float], size: Sequence[float], cells: int,
+                colors: Tuple[Sequence[float], Sequence[float]]) -> Mesh:
+    """Box with a checkerboard "texture": every face is ``cells x cells`` quads with their own
+    vertices (so colours are crisp, normals flat), alternating ``colors``. Faces CCW from outside."""
+    c, s = torch.tensor(center, dtype=torch.float64), torch.tensor(size, dtype=torch.float64)
+    n = int(cells)
+    g = torch.arange(n + 1, dtype=torch.float64) / n
+    verts, faces, cols = [], [], []
+    col = torch.tensor(colors, dtype=torch.float32)
+    i, j = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="ij")
+    corners = torch.tensor([[0, 0], [1, 0], [1, 1], [0, 1]])
+    for k in range(3):
+        for sign in (1.0, -1.0):
+            e = torch.eye(3, dtype=torch.float64)
+            a, b = e[(k + 1) % 3] * s[(k + 1) % 3], e[(k + 2) % 3] * s[(k + 2) % 3]
+            if sign < 0:
+                a, b = b, a
+            origin = c + sign * 0.5 * s[k] * e[k] - 0.5 * a - 0.5 * b
+            ci = (i[..., None] + corners[:, 0]).reshape(-1)          # (n*n*4,)
+            cj = (j[..., None] + corners[:, 1]).reshape(-1)
+            v = origin + g[ci, None] * a + g[cj, None] * b
+            base = sum(x.shape[0] for x in verts)
+            q = base + torch.arange(n * n)[:, None] * 4
+            faces.append(torch.cat([q + torch.tensor([0, 1, 2]), q + torch.tensor([0, 2, 3])]))
+            parity = ((i + j + k) % 2).reshape(-1).repeat_interleave(4)
+            cols.append(col[parity])
+            verts.append(v)
+    return Mesh(verts=torch.cat(verts).float(), faces=torch.cat(faces), vert_colors=torch.cat(cols))
+
+
+def nerf_scene() -> Mesh:
+    """The built-in scene (world units, +Y up, inside [-0.8, 0.8]^3): a checker plinth, four
+    thin poles (radius 0.03), a thin tilted ring (tube radius 0.025) and a gradient sphere."""
+    plinth = checker_box((0.0, -0.55, 0.0), (1.2, 0.25, 1.2), 6, ((0.92, 0.55, 0.15), (0.95, 0.92, 0.82)))
+    poles = [P.transformed(P.cylinder(0.03, 1.0, 12, color=c), translation=(x, -0.0, z))
+             for (x, z), c in zip(((0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5), (0.5, -0.5)),
+                                  ((0.9, 0.1, 0.1), (0.1, 0.7, 0.2), (0.15, 0.3, 0.95), (0.95, 0.85, 0.1)))]
+    ring = P.transformed(P.torus(0.45, 0.025, 48, 8, color=(0.7, 0.2, 0.8)),
+                         rotation=euler_xyz((60.0, 0.0, 20.0), dtype=torch.float64), translation=(0.0, 0.2, 0.0))
+    sphere = P.icosphere(3, 0.28)
+    v = sphere.verts
+    sphere = Mesh(verts=v + torch.tensor([0.0, -0.1, 0.0]), faces=sphere.faces,
+                  vert_colors=(0.5 + 0.5 * v / 0.28).clamp(0, 1))
+    return P.join([plinth] + poles + [ring, sphere])
+
+
+def builtin_cameras(n_train: int, n_val: int, n_test: int, image_size: int, distance: float, fov: float
+                    ) -> Tuple[Cameras, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Cameras (train, then val, then test) looking at the origin, and the split indices.
+
+    Train: Fibonacci spiral, elevation uniform in sin over [-10, 70] degrees, golden-angle
+    azimuths. Val: a ring at 45 degrees. Test: a ring at 20 degrees, azimuths offset by half
+    a step from 0.
+    """
+    k = torch.arange(n_train, dtype=torch.float64)
+    lo, hi = math.sin(math.radians(-10.0)), math.sin(math.radians(70.0))
+    elev = torch.rad2deg(torch.asin(lo + (hi - lo) * (k + 0.5) / n_train))
+    azim = torch.remainder(k * 137.50776405, 360.0)
+    elev = torch.cat([elev, torch.full((n_val,), 45.0, dtype=torch.float64), torch.full((n_test,), 20.0, dtype=torch.float64)])
+    azim = torch.cat([azim, torch.arange(n_val) * 360.0 / max(n_val, 1) + 10.0,
+                      (torch.arange(n_test) + 0.5) * 360.0 / max(n_test, 1)])
+    cams = look_at_cameras(distance, elev.float(), azim.float(), fov, image_size)
+    idx = torch.arange(n_train + n_val + n_test)
+    return cams, idx[:n_train], idx[n_train:n_train + n_val], idx[n_train + n_val:]
+
+
+@DATASETS.register("nerf_builtin")
+def nerf_builtin(image_size: int = 64, n_train: int = 100, n_val: int = 4, n_test: int = 8,
+                 distance: float = 3.2, fov: float = 45.0, background="white", antialias: int = 2,
+                 cache_dir: str = "outputs/.cache", scene_box: Sequence[Sequence[float]] = ((-0.75,) * 3, (0.75,) * 3),
+                 device=None) -> MultiViewData:
+    """The built-in multi-view dataset (see the module docstring); cached in ``cache_dir``.
+
+    ``image_size`` pixels square (64 default, 128 option); ``distance`` world units;
+    ``fov`` degrees; ``antialias`` the mesh renderer's supersampling factor.
+    """
+    if int(image_size) < 8 or min(int(n_train), int(n_test)) < 1 or int(n_val) < 0:
+        raise UserError(f"nerf_builtin needs image_size >= 8, n_train >= 1, n_test >= 1, "
+                        f"got {image_size}, {n_train}, {n_test}")
+    bg = background_rgb(background)
+    key = json.dumps([1, int(image_size), int(n_train), int(n_val), int(n_test), float(distance), float(fov),
+                      bg.tolist(), int(antialias)])
+    path = resolve_path(cache_dir) / f"nerf_builtin_{hashlib.sha1(key.encode()).hexdigest()[:12]}.pt"
+    cams, tr, va, te = builtin_cameras(int(n_train), int(n_val), int(n_test), int(image_size), float(distance), float(fov))
+    if path.exists():
+        images = torch.load(path, map_location="cpu", weights_only=True)["images"]
+    else:
+        from l3d_app.render.mesh_renderer import MeshRenderer
+
+        renderer = MeshRenderer(shading="lambert", background=tuple(bg.tolist()), ambient=0.45, diffuse=0.55,
+                                specular=0.0, light_direction=(0.4, 1.0, 0.6), antialias=int(antialias))
+        mesh = nerf_scene()
+        with torch.no_grad():
+            images = torch.cat([renderer(mesh, cams[s:s + 16])["image"] for s in range(0, len(cams), 16)])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            torch.save({"images": images.contiguous(), "key": key}, tmp)
+    box = torch.tensor(scene_box, dtype=torch.float32).reshape(2, 3)
+    data = MultiViewData(images.float(), cams, tr, va, te, bg, box, name="nerf_builtin")
+    return data if device is None else data.to(device)
