@@ -22,6 +22,15 @@ MODULES = (
     "l3d_app.data.box_images",
     "l3d_app.render.volume",
     "l3d_app.tasks.box",
+    "l3d_app.models.nerf",
+    "l3d_app.data.nerf_views",
+    "l3d_app.data.nerf_formats",
+    "l3d_app.tasks.train_nerf",
+    "l3d_app.losses.occupancy",
+    "l3d_app.losses.mesh_regularizers",
+    "l3d_app.tasks.fit_vox",
+    "l3d_app.tasks.fit_point",
+    "l3d_app.tasks.fit_mesh",
 )
 
 

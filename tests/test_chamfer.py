@@ -74,3 +74,29 @@ def test_bad_inputs_are_user_errors():
         chamfer_distance(torch.zeros(3, 3), torch.zeros(4, 2))
     with pytest.raises(UserError):
         chamfer_distance(torch.zeros(3, 3), torch.zeros(4, 3), backend="faiss")
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_both_directions_match_brute_force_across_tiles_and_chunks(dtype):
+    from l3d_app.metrics.chamfer import nearest_neighbors_both
+
+    g = torch.Generator().manual_seed(3)
+    x = (torch.rand(1037, 3, generator=g) * 2 - 1).to(dtype)  # several chunks
+    y = (torch.rand(613, 3, generator=g) * 2 - 1).to(dtype)   # several tiles + padding
+    ixy, iyx = nearest_neighbors_both(x, y, chunk_size=100)
+    d = ((x.double()[:, None] - y.double()[None]) ** 2).sum(-1)
+    # same neighbour, or one at the same distance up to float rounding
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    assert (d.gather(1, ixy[:, None]).squeeze(1) - d.min(1).values).abs().max() <= tol
+    assert (d.gather(0, iyx[None]).squeeze(0) - d.min(0).values).abs().max() <= tol
+    assert (ixy == d.argmin(1)).float().mean() == 1.0 and (iyx == d.argmin(0)).float().mean() == 1.0
+
+
+def test_half_precision_and_far_offset_inputs():
+    g = torch.Generator().manual_seed(4)
+    x, y = torch.rand(200, 3, generator=g), torch.rand(300, 3, generator=g)
+    ref = brute_force(x, y)
+    assert torch.allclose(chamfer_distance(x.half(), y.half()).double(), brute_force(x.half(), y.half()), rtol=1e-2)
+    off = torch.tensor([1000.0, -500.0, 250.0], dtype=torch.float64)  # centring keeps it exact
+    got = chamfer_distance(x.double() + off, y.double() + off)
+    assert torch.allclose(got, ref, rtol=1e-6)

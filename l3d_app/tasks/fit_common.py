@@ -1,0 +1,54 @@
+"""Pieces shared by the fitting tasks (fit_vox, fit_point, fit_mesh): the target, the
+side-by-side turntable of fit and target, and the common knob checks."""
+
+from __future__ import annotations
+
+from typing import Union
+
+import torch
+
+from l3d_app.errors import UserError
+from l3d_app.geometry.mesh import Mesh
+from l3d_app.geometry.pointcloud import PointCloud
+from l3d_app.registry import CAMERA_PATHS, DATASETS, RENDERERS
+from l3d_app.runtime.media import save_gif
+from l3d_app.tasks.common import render_frames, require_positive
+
+Shape = Union[Mesh, PointCloud, None]
+
+
+def load_target_mesh(cfg, device) -> Mesh:
+    """The data source's mesh (built-in shape or ``data=mesh data.path=FILE``)."""
+    mesh = DATASETS.build(cfg.data, device=device)
+    if not isinstance(mesh, Mesh):
+        raise UserError("fitting tasks need a mesh data source (data=builtin, data=mesh data.path=FILE, ...)")
+    return mesh
+
+
+def check_fit_knobs(cfg, *extra: str) -> None:
+    require_positive(cfg, "iters", "image_size", "num_frames", "fps", "batch_frames", *extra)
+
+
+def _render(cfg, shape: Shape, cams, desc: str) -> torch.Tensor:
+    """(N, H, W, 3) frames of a Mesh (``renderer``), a PointCloud (``point_renderer``), or a
+    blank background when ``shape`` is None (e.g. an empty fit)."""
+    if shape is None:
+        bg = torch.tensor(list(cfg.background), dtype=torch.float32)
+        return bg.expand(len(cams), cams.height, cams.width, 3).clone()
+    renderer = RENDERERS.build(cfg.renderer if isinstance(shape, Mesh) else cfg.point_renderer)
+    return render_frames(renderer, shape, cams, int(cfg.batch_frames), desc=desc)["image"]
+
+
+def side_by_side_turntable(cfg, ctx, fitted: Shape, target: Shape, name: str) -> torch.Tensor:
+    """Write ``name`` (gif): turntable of ``fitted`` (left) beside ``target`` (right); log it.
+
+    Returns the (N, H, 2W, 3) frames.
+    """
+    cams = CAMERA_PATHS.build(cfg.camera, device=ctx.device)
+    with torch.no_grad():
+        left = _render(cfg, fitted, cams, "render fit")
+        right = _render(cfg, target, cams, "render target")
+    frames = torch.cat([left, right], dim=2)
+    save_gif(ctx.path(name), frames, fps=float(cfg.fps))
+    ctx.logger.image_sequence(f"{name.rsplit('.', 1)[0]}/frames", frames)
+    return frames
