@@ -1,0 +1,62 @@
+"""Faults: reproducibility, interrupt + resume at task level, bad data at the CLI."""
+
+import json
+import os
+
+import pytest
+
+from l3d_app.app import RunInterrupted, run_task
+
+VOLATILE = {"seconds", "train_seconds", "render_seconds", "frames_per_second", "rays_per_second",
+            "steps_per_second", "device", "interrupted", "eval_seconds", "points_per_second"}
+
+
+def stable(metrics):
+    return {k: v for k, v in metrics.items() if k not in VOLATILE and "second" not in k}
+
+
+def read(path):
+    return json.loads((path / "metrics.json").read_text())
+
+
+FIT_POINT = ("task=fit_point", "num_points=400", "iters=30", "eval_every=10", "image_size=16",
+             "num_frames=2")
+FIT_VOX = ("task=fit_vox", "voxel_size=12", "iters=20", "eval_every=10", "image_size=16", "num_frames=2")
+
+
+@pytest.mark.parametrize("overrides", [FIT_POINT, FIT_VOX], ids=["fit_point", "fit_vox"])
+def test_same_config_and_seed_give_the_same_metrics(compose, tmp_path, overrides):
+    run_task(compose(*overrides), out_dir=tmp_path / "a")
+    run_task(compose(*overrides), out_dir=tmp_path / "b")
+    assert stable(read(tmp_path / "a")) == stable(read(tmp_path / "b"))
+
+
+def test_interrupted_run_resumes_to_the_uninterrupted_result(compose, tmp_path, monkeypatch):
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    run_task(compose(*FIT_POINT), out_dir=full)
+    monkeypatch.setenv("L3D_STOP_AT_STEP", "12")
+    with pytest.raises(RunInterrupted):
+        run_task(compose(*FIT_POINT), out_dir=cut)
+    partial = read(cut)
+    assert partial["interrupted"] is True and (cut / "checkpoint.pt").exists()
+    monkeypatch.delenv("L3D_STOP_AT_STEP")
+    run_task(compose(*FIT_POINT, "resume=true"), out_dir=cut)
+    resumed = read(cut)
+    assert not resumed.get("interrupted")
+    assert stable(resumed) == stable(read(full))
+
+
+def test_bad_data_folders_exit_2_with_one_line(tmp_path):
+    from test_app import main_py
+
+    bad_nerf = tmp_path / "nerf"
+    bad_nerf.mkdir()
+    (bad_nerf / "transforms_train.json").write_text(json.dumps({"frames": []}))  # no camera_angle_x
+    for args in (["task=box", f"data.root={tmp_path / 'nothing'}"],
+                 ["task=train_nerf", "data=blender", f"data.root={bad_nerf}"]):
+        out = main_py(*args, f"hydra.run.dir={tmp_path / 'run'}")
+        assert out.returncode == 2, out.stderr
+        assert len(out.stderr.strip().splitlines()) == 1 and "Traceback" not in out.stderr
+        assert not (tmp_path / "run" / "metrics.json").exists()
+    assert os.listdir(tmp_path / "run") in ([], [".hydra"]) or not any(
+        p.endswith((".gif", ".png", ".pt")) for p in os.listdir(tmp_path / "run"))
