@@ -1,0 +1,101 @@
+"""pointnet_robustness: the course's robustness tables for classification AND segmentation.
+
+    python main.py task=pointnet_robustness                        # trains both first
+    python main.py task=pointnet_robustness cls_checkpoint=A/best.pt seg_checkpoint=B/best.pt
+    python main.py task=pointnet_robustness augment_rotation=true  # train with rotations
+
+For each kind (cls, seg) the model is read from its ``best.pt`` or, when none is given,
+trained first with the shared pointnet knobs (into ``cls/`` and ``seg/`` sub-folders).
+Then two tables on the test split:
+
+* rotation: accuracy with every test cloud rotated by each of ``rotation_degrees``
+  about ``rotation_axis``, evaluated on ``rotation_points`` points per cloud (0 = all);
+* number of points: accuracy on the first-seed random subsets of ``num_points_list``
+  points per cloud (sizes above the clouds' size are reported as NaN).
+
+Figures go to metrics.json (``cls_rot<deg>``, ``cls_pts<n>``, ``seg_rot<deg>``,
+``seg_pts<n>``, plus ``tables``), TensorBoard (``robustness/*`` against the degrees or
+point count, and the markdown tables as text) and ``robustness.md``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Dict, List
+
+from l3d_app.errors import UserError
+from l3d_app.registry import TASKS
+from l3d_app.runtime.context import RunContext
+from l3d_app.runtime.logger import RunLogger
+from l3d_app.runtime.seed import seed_everything
+from l3d_app.tasks.point_learning import evaluate, fit, load_data, load_model, rotations
+
+
+def _table(title: str, header: str, rows: Dict[Any, float]) -> str:
+    lines = [f"| {header} | {title} accuracy |", "|---:|---:|"]
+    lines += [f"| {k} | {v:.4f} |" for k, v in rows.items()]
+    return "\n".join(lines)
+
+
+def _model_for(cfg, ctx, kind: str):
+    path = cfg.get(f"{kind}_checkpoint")
+    data = load_data(cfg, kind)
+    if path:
+        model, meta = load_model(path, ctx.device)
+        if meta["kind"] != kind:
+            raise UserError(f"{kind}_checkpoint {path} holds a '{meta['kind']}' model")
+        return model, data, {"source": str(path)}
+    sub = ctx.out_dir / kind
+    sub_ctx = RunContext(out_dir=sub, device=ctx.device,
+                         generator=seed_everything(int(cfg.seed), ctx.device),
+                         logger=RunLogger(sub, enabled=ctx.logger.writer is not None))
+    sub.mkdir(parents=True, exist_ok=True)
+    try:
+        model, info = fit(cfg, sub_ctx, data, kind)
+    finally:
+        sub_ctx.logger.close()
+    return model, data, {"source": str(sub / "best.pt"), "train_seconds": info["train_seconds"]}
+
+
+@TASKS.register("pointnet_robustness")
+def pointnet_robustness(cfg, ctx) -> dict:
+    """Rotation and point-count tables for a classifier and a segmenter (see module doc)."""
+    degrees: List[float] = [float(d) for d in cfg.rotation_degrees]
+    counts: List[int] = [int(n) for n in cfg.num_points_list]
+    kinds = [str(k) for k in cfg.robust_kinds]
+    if not kinds or any(k not in ("cls", "seg") for k in kinds):
+        raise UserError(f"robust_kinds must list cls and/or seg, got {kinds}")
+    metrics: Dict[str, Any] = {"rotation_axis": str(cfg.rotation_axis),
+                               "augment_rotation": bool(cfg.augment_rotation), "tables": {}}
+    report = [f"# Robustness (rotation about {cfg.rotation_axis}; "
+              f"augment_rotation={bool(cfg.augment_rotation)})"]
+    seed, batch = int(cfg.seed), int(cfg.eval_batch_points)
+    for kind in kinds:
+        model, data, info = _model_for(cfg, ctx, kind)
+        metrics[f"{kind}_model"] = info["source"]
+        rot_rows, pts_rows = {}, {}
+        with ctx.stopwatch.stage(f"{kind}_tables"):
+            mats = rotations(str(cfg.rotation_axis), degrees)
+            for d, mat in zip(degrees, mats):
+                acc = evaluate(model, data.test, kind, ctx.device, int(cfg.rotation_points), seed,
+                               rotation=mat, batch_points=batch).accuracy
+                rot_rows[f"{d:g}"] = acc
+                metrics[f"{kind}_rot{d:g}"] = acc
+                ctx.logger.scalar(f"robustness/{kind}_accuracy_vs_degrees", acc, int(round(d)))
+            for n in counts:
+                acc = float("nan")
+                if n <= data.test.num_points:
+                    acc = evaluate(model, data.test, kind, ctx.device, n, seed, batch_points=batch).accuracy
+                pts_rows[str(n)] = acc
+                metrics[f"{kind}_pts{n}"] = acc
+                ctx.logger.scalar(f"robustness/{kind}_accuracy_vs_points", acc, n)
+        metrics["tables"][kind] = {"rotation": rot_rows, "num_points": pts_rows}
+        metrics[f"{kind}_seconds"] = ctx.stopwatch.stages[f"{kind}_tables"] + info.get("train_seconds", 0.0)
+        name = "classification" if kind == "cls" else "segmentation (point)"
+        report += [f"\n## {name}\n", _table(name, "degrees", rot_rows), "",
+                   _table(name, "points", pts_rows)]
+    text = "\n".join(report) + "\n"
+    ctx.path("robustness.md").write_text(text)
+    ctx.logger.text("robustness/tables", text)
+    if "cls" in kinds:
+        metrics["accuracy"] = metrics[f"cls_rot{degrees[0]:g}"] if degrees else float("nan")
+    return metrics

@@ -1,0 +1,305 @@
+"""Point-cloud learning: data, loaders, models, the pointnet tasks, resume, robustness."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from l3d_app.app import RunInterrupted, run_task
+from l3d_app.data.point_sets import course_pointcloud, modelnet40
+from l3d_app.data.shape_parts import CLASS_NAMES, PART_NAMES, lathe, shape_parts
+from l3d_app.errors import UserError
+from l3d_app.models.dgcnn import dgcnn
+from l3d_app.models.pointnet import pointnet
+from l3d_app.tasks.point_learning import rotate, rotations
+
+CHAIR_PARTS = {PART_NAMES.index(p) for p in ("chair/seat", "chair/back", "chair/legs", "chair/arms")}
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny tensors: one intra-op thread is faster and kinder to a shared machine."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def cache_dir(tmp_path_factory):
+    return tmp_path_factory.mktemp("shape_cache")
+
+
+def tiny(cache_dir, *extra):
+    """Overrides for a seconds-long run on a tiny built-in dataset and a small PointNet."""
+    return ["data.train_per_class=10", "data.test_per_class=6", "data.num_points=400",
+            f"data.cache_dir={cache_dir}", "model.widths=[32,64,128]", "model.cls_head=[64]",
+            "model.seg_head=[64]", "train_points=128", "eval_points=128", "batch_size=10",
+            "lr=0.005", "num_vis=1", "num_frames=2", "image_size=32", "vis_points=100",
+            "tensorboard=false", "threads=1", *extra]
+
+
+# ----------------------------------------------------------------------------- data
+
+def test_shape_parts_shapes_labels_and_cache(cache_dir):
+    data = shape_parts(train_per_class=3, test_per_class=2, num_points=500, cache_dir=str(cache_dir))
+    assert data.train.points.shape == (9, 500, 3) and data.test.points.shape == (6, 500, 3)
+    assert data.train.parts.shape == (9, 500) and data.train.labels.tolist() == [0, 0, 0, 1, 1, 1, 2, 2, 2]
+    assert data.class_names == list(CLASS_NAMES) and len(data.part_names) == 10
+    radius = data.train.points.norm(dim=-1).max(dim=1).values
+    assert torch.allclose(radius, torch.ones(9), atol=1e-5)
+    for split in (data.train, data.test):
+        for c, name in enumerate(CLASS_NAMES):
+            parts = set(split.parts[split.labels == c].unique().tolist())
+            allowed = {i for i, p in enumerate(PART_NAMES) if p.startswith(name + "/")}
+            assert parts <= allowed and len(parts) >= 3
+    chairs = data.train.parts[data.train.labels == 0]
+    for chair in chairs:  # every chair has a seat, a back and legs
+        assert {0, 1, 2} <= set(chair.unique().tolist()) <= CHAIR_PARTS
+    files = list(cache_dir.glob("shape_parts_*.npz"))
+    assert files
+    again = shape_parts(train_per_class=3, test_per_class=2, num_points=500, cache_dir=str(cache_dir))
+    assert torch.equal(again.test.points, data.test.points)
+    other = shape_parts(train_per_class=3, test_per_class=2, num_points=500, seed=1, cache_dir=str(cache_dir))
+    assert not torch.allclose(other.test.points, data.test.points)
+    # objects vary: two chairs differ in extent
+    ext = data.train.points[:3].amax(1) - data.train.points[:3].amin(1)
+    assert (ext[0] - ext[1]).abs().max() > 1e-3
+
+
+def test_shape_parts_bad_knobs(cache_dir):
+    with pytest.raises(UserError, match="unknown shape_parts class"):
+        shape_parts(classes=["sofa"], cache_dir=str(cache_dir))
+    with pytest.raises(UserError, match="num_points"):
+        shape_parts(num_points=0, cache_dir=str(cache_dir))
+
+
+def test_lathe_counts_and_radius():
+    mesh = lathe([1.0, 0.5, 0.25], [0.0, 1.0, 2.0], n=8, cap_bottom=True)
+    assert mesh.num_verts == 3 * 8 + 1 and mesh.num_faces == 2 * 8 * 2 + 8
+    r = mesh.verts[:8, [0, 2]].norm(dim=-1)
+    assert torch.allclose(r, torch.ones(8), atol=1e-6)
+
+
+def test_course_loader_cls_and_seg(tmp_path):
+    rng = np.random.default_rng(0)
+    for split, n in (("train", 5), ("test", 3)):
+        np.save(tmp_path / f"{split}_data.npy", rng.normal(size=(n, 50, 3)).astype(np.float32))
+        np.save(tmp_path / f"{split}_labels.npy", np.arange(n) % 3)
+        (tmp_path / "seg").mkdir(exist_ok=True)
+        np.save(tmp_path / "seg" / f"data_{split}.npy", rng.normal(size=(n, 50, 3)))
+        np.save(tmp_path / "seg" / f"label_{split}.npy", rng.integers(0, 6, size=(n, 50)))
+    data = course_pointcloud(str(tmp_path), kind="cls", class_names=["chair", "vase", "lamp"])
+    assert data.train.points.shape == (5, 50, 3) and data.test.labels.tolist() == [0, 1, 2]
+    assert data.class_names == ["chair", "vase", "lamp"] and data.train.parts is None
+    seg = course_pointcloud(str(tmp_path), kind="seg")
+    assert seg.train.parts.shape == (5, 50) and seg.train.labels is None
+    assert seg.part_names == [f"part{i}" for i in range(int(seg.train.parts.max().clamp_min(seg.test.parts.max())) + 1)]
+    with pytest.raises(UserError, match="no class labels"):
+        seg.test.targets("cls")
+    (tmp_path / "test_labels.npy").unlink()
+    with pytest.raises(UserError, match="missing test_data.npy / test_labels.npy"):
+        course_pointcloud(str(tmp_path), kind="cls")
+    with pytest.raises(UserError, match="not a folder"):
+        course_pointcloud(str(tmp_path / "nope"))
+
+
+def test_modelnet40_loader(tmp_path):
+    try:
+        import h5py
+    except ImportError:
+        (tmp_path / "ply_data_train0.h5").write_bytes(b"")
+        with pytest.raises(UserError, match="pip install h5py"):
+            modelnet40(str(tmp_path))
+        pytest.skip("h5py not installed: only the error message is tested")
+    rng = np.random.default_rng(0)
+    for split, n in (("train", 4), ("test", 2)):
+        with h5py.File(tmp_path / f"ply_data_{split}0.h5", "w") as f:
+            f["data"] = rng.normal(size=(n, 64, 3)).astype(np.float32)
+            f["label"] = (np.arange(n) % 2)[:, None].astype(np.uint8)
+    (tmp_path / "shape_names.txt").write_text("airplane\nbathtub\n")
+    data = modelnet40(str(tmp_path))
+    assert data.train.points.shape == (4, 64, 3) and data.test.labels.tolist() == [0, 1]
+    assert data.class_names == ["airplane", "bathtub"]
+
+
+def test_modelnet40_missing_files(tmp_path):
+    with pytest.raises(UserError):
+        modelnet40(str(tmp_path))
+
+
+# ----------------------------------------------------------------------------- models
+
+MODELS = [
+    ("pointnet", lambda kind, k: pointnet(kind, k, widths=[32, 64, 128], input_transform=True,
+                                          feature_transform=True)),
+    ("dgcnn", lambda kind, k: dgcnn(kind, k, widths=[16, 16, 32], k=8, emb=64)),
+]
+
+
+@pytest.mark.parametrize("name,build", MODELS, ids=[m[0] for m in MODELS])
+@pytest.mark.parametrize("kind", ["cls", "seg"])
+def test_permutation_invariance(name, build, kind):
+    torch.manual_seed(0)
+    model = build(kind, 4)
+    model.train()
+    for _ in range(3):  # move BatchNorm statistics away from their initial values
+        model(torch.randn(4, 128, 3))
+    model.eval()
+    x = torch.randn(3, 128, 3)
+    perm = torch.randperm(128)
+    with torch.no_grad():
+        out, out_perm = model(x)["logits"], model(x[:, perm])["logits"]
+    if kind == "cls":
+        assert out.shape == (3, 4)
+        torch.testing.assert_close(out_perm, out, rtol=1e-4, atol=1e-5)
+    else:
+        assert out.shape == (3, 128, 4)
+        torch.testing.assert_close(out_perm, out[:, perm], rtol=1e-4, atol=1e-5)
+    assert (out[0] - out[1]).abs().max() > 1e-4  # the output does depend on the cloud
+
+
+def test_rotation_helper():
+    x = torch.tensor([[[1.0, 0.0, 0.0]]])
+    torch.testing.assert_close(rotate(x, rotations("z", [90.0]))[0, 0], torch.tensor([0.0, 1.0, 0.0]),
+                               atol=1e-6, rtol=0)
+    with pytest.raises(UserError):
+        rotations("w", [10.0])
+
+
+# ----------------------------------------------------------------------------- tasks
+
+@pytest.mark.parametrize("task", ["pointnet_cls", "pointnet_seg"])
+def test_task_trains_and_beats_chance(compose, cache_dir, tmp_path, task):
+    cfg = compose(f"task={task}", *tiny(cache_dir, "epochs=8"))
+    run_task(cfg, out_dir=tmp_path)
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    test = shape_parts(train_per_class=10, test_per_class=6, num_points=400, cache_dir=str(cache_dir)).test
+    target = test.labels if task == "pointnet_cls" else test.parts
+    majority = float(torch.bincount(target.reshape(-1)).max()) / target.numel()  # predict-one-label
+    assert m["accuracy"] > majority + 0.25, (m, majority)
+    assert m["test_points"] == 400 and m["n_params"] > 0 and m["seconds"] > 0
+    assert m["iters"] == 8 * 3 and m["best_epoch"] >= 1
+    for name in ("best.pt", "checkpoint.pt", "confusion_matrix.png"):
+        assert (tmp_path / name).is_file()
+    gifs = list((tmp_path / "vis").glob("*.gif"))
+    assert any(g.name.startswith("sample0_") for g in gifs)
+    if task == "pointnet_seg":
+        assert 0 < m["miou"] <= 1 and any(g.name.startswith("failure_") for g in gifs)
+
+
+def test_resume_matches_uninterrupted(compose, cache_dir, tmp_path, monkeypatch):
+    overrides = tiny(cache_dir, "epochs=3", "num_vis=0", "vis_failures=false")
+    run_task(compose("task=pointnet_cls", *overrides), out_dir=tmp_path / "full")
+    full = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=False)
+
+    monkeypatch.setenv("L3D_STOP_AT_STEP", "3")  # the loop's hook: a SIGINT after step 3
+    with pytest.raises(RunInterrupted):
+        run_task(compose("task=pointnet_cls", *overrides), out_dir=tmp_path / "cut")
+    cut = torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=False)
+    assert cut["step"] == 3  # stopped after epoch 1 of 3 (3 steps per epoch)
+    assert json.loads((tmp_path / "cut" / "metrics.json").read_text())["interrupted"] is True
+    monkeypatch.delenv("L3D_STOP_AT_STEP")
+    run_task(compose("task=pointnet_cls", *overrides, "resume=true"), out_dir=tmp_path / "cut")
+    resumed = torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=False)
+    assert resumed["step"] == full["step"] == 9
+    a, b = full["trainable"]["modules"]["model"], resumed["trainable"]["modules"]["model"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    best_full = torch.load(tmp_path / "full" / "best.pt", weights_only=False)
+    best_cut = torch.load(tmp_path / "cut" / "best.pt", weights_only=False)
+    assert best_full["epoch"] == best_cut["epoch"]
+
+
+def test_robustness_command(compose, cache_dir, tmp_path):
+    overrides = tiny(cache_dir, "epochs=2", "rotation_degrees=[0,90]",
+                     "num_points_list=[400,100,100000]")
+    run_task(compose("task=pointnet_robustness", *overrides), out_dir=tmp_path / "a")
+    m = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    for kind in ("cls", "seg"):
+        for key in ("rot0", "rot90", "pts400", "pts100"):
+            assert 0.0 <= m[f"{kind}_{key}"] <= 1.0
+        assert np.isnan(m[f"{kind}_pts100000"])  # more points than the clouds have
+        assert set(m["tables"][kind]) == {"rotation", "num_points"}
+    assert m["cls_rot0"] == pytest.approx(m["cls_pts400"])  # both: every point, unrotated
+    assert "| 90 |" in (tmp_path / "a" / "robustness.md").read_text()
+    # from a saved checkpoint: same figures without training
+    run_task(compose("task=pointnet_robustness", *overrides, "robust_kinds=[cls]",
+                     f"cls_checkpoint={tmp_path / 'a' / 'cls' / 'best.pt'}"), out_dir=tmp_path / "b")
+    m2 = json.loads((tmp_path / "b" / "metrics.json").read_text())
+    assert m2["cls_rot90"] == pytest.approx(m["cls_rot90"]) and "seg_rot0" not in m2
+
+
+def test_missing_course_files_is_user_error(compose, tmp_path):
+    with pytest.raises(UserError, match="missing train_data.npy"):
+        run_task(compose("task=pointnet_cls", "data=course_pointcloud", f"data.root={tmp_path}",
+                         "tensorboard=false"), out_dir=tmp_path / "x")
+    with pytest.raises(UserError, match="data.root"):  # not given at all
+        run_task(compose("task=pointnet_cls", "data=course_pointcloud", "tensorboard=false"),
+                 out_dir=tmp_path / "y")
+
+
+# ----------------------------------------------------------------------------- DDP
+
+def _ddp_worker(rank, world, port, out_dir, cache_dir):
+    """One torchrun-like process: the env variables torchrun sets, then the app."""
+    os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank),
+                      MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), L3D_NO_PROGRESS="1")
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+
+    torch.set_num_threads(1)
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
+        cfg = compose(config_name="config", overrides=["task=pointnet_cls", "device=cpu", *tiny(
+            cache_dir, "epochs=2", "num_vis=0", "vis_failures=false")])
+    run_task(cfg, out_dir=Path(out_dir))
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_ddp_two_processes_end_with_identical_weights(cache_dir, tmp_path):
+    import torch.multiprocessing as mp
+
+    mp.spawn(_ddp_worker, args=(2, _free_port(), str(tmp_path), str(cache_dir)), nprocs=2, join=True)
+    rank0 = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    rank1 = torch.load(tmp_path / "rank1" / "checkpoint.pt", weights_only=False)
+    assert rank0["step"] == rank1["step"] == 2 * 3  # 2 epochs of ceil(30 / 10) global batches
+    a, b = rank0["trainable"]["modules"]["model"], rank1["trainable"]["modules"]["model"]
+    params = [k for k in a if "running_" not in k and "num_batches" not in k]
+    assert all(torch.equal(a[k], b[k]) for k in params)  # BatchNorm statistics stay rank-local
+    torch.manual_seed(0)
+    init = pointnet("cls", 3, widths=[32, 64, 128], cls_head=[64]).state_dict()
+    assert any(not torch.equal(init[k], a[k]) for k in params)  # and training moved them
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["world_size"] == 2 and (tmp_path / "best.pt").is_file()
+    assert not (tmp_path / "rank1" / "best.pt").exists()
+
+
+def test_batched_knn_matches_brute_force():
+    from l3d_app.models.dgcnn import batched_knn
+
+    x = torch.randn(2, 50, 5, dtype=torch.float64)
+    idx = batched_knn(x, 4, chunk=7)
+    ref = torch.cdist(x, x).topk(4, dim=-1, largest=False).indices
+    assert torch.equal(idx, ref)
+
+
+def test_dgcnn_task_runs(compose, cache_dir, tmp_path):
+    cfg = compose("task=pointnet_seg", "model=dgcnn", "model.widths=[16,16,32]", "model.k=8",
+                  "model.emb=64", "model.seg_head=[32]",
+                  *tiny(cache_dir, "epochs=1", "num_vis=0", "vis_failures=false"))
+    run_task(cfg, out_dir=tmp_path)
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert 0 <= m["accuracy"] <= 1 and m["n_params"] > 0
+    assert torch.load(tmp_path / "best.pt", weights_only=False)["model_cfg"]["name"] == "dgcnn"
