@@ -21,7 +21,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 BUDGETS = (30, 120, 300)
-EVAL_EVERY = {"train_nerf": 50, "nerf_baseline": 20}
+EVAL_EVERY = {"train_nerf": 10, "nerf_baseline": 10}
 
 
 def run_config(task: str, budget: float, threads: int, out: Path, reuse: bool = False) -> list:

@@ -25,9 +25,9 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.marching_cubes import sdf_to_mesh
-from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.parametric import torus_points
 from l3d_app.geometry.sdf import Torus
+from l3d_app.geometry.sampling import sample_points_on_mesh
 from l3d_app.metrics.chamfer import chamfer_distance
 from l3d_app.registry import TASKS
 from l3d_app.runtime.files import atomic_path
@@ -45,20 +45,6 @@ def _positive_ints(cfg, key: str) -> List[int]:
     if not out or any(v <= 0 for v in out):
         raise UserError(f"{key} must be a non-empty list of positive integers, got {out}")
     return out
-
-
-def _sample_mesh(mesh: Mesh, num_samples: int, generator: torch.Generator) -> torch.Tensor:
-    """(S, 3) area-uniform random points on ``mesh``."""
-    try:
-        from l3d_app.geometry.sampling import sample_points_on_mesh
-    except ImportError:  # pragma: no cover - the shared sampler is part of the package
-        areas = mesh.face_areas().double()
-        face = torch.multinomial(areas, num_samples, replacement=True, generator=generator)
-        r1, r2 = torch.rand(2, num_samples, 1, generator=generator, dtype=mesh.verts.dtype)
-        s = r1.sqrt()
-        fv = mesh.face_verts()[face]
-        return (1 - s) * fv[:, 0] + s * (1 - r2) * fv[:, 1] + s * r2 * fv[:, 2]
-    return sample_points_on_mesh(mesh, num_samples, generator).points
 
 
 def _timed(fn):
@@ -109,7 +95,7 @@ def surface_tradeoff(cfg, ctx) -> dict:
             key = f"points_{value}"
         else:
             mesh, seconds = _timed(lambda: sdf_to_mesh(sdf, value, colors=None))
-            points = _sample_mesh(mesh, n_mesh, gen)
+            points = sample_points_on_mesh(mesh, n_mesh, gen).points
             faces = mesh.num_faces
             surface_error = float(sdf(points.double()).abs().mean())
             key = f"mc_{value}"
