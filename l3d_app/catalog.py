@@ -38,6 +38,9 @@ MODULES = (
     "l3d_app.tasks.fit_vox",
     "l3d_app.tasks.fit_point",
     "l3d_app.tasks.fit_mesh",
+    "l3d_app.models.gaussians",
+    "l3d_app.tasks.gs_train",
+    "l3d_app.tasks.gs_render",
 )
 
 

@@ -1,0 +1,81 @@
+"""3D Gaussians <-> the standard 3DGS PLY layout (binary little-endian float32 vertices).
+
+Properties, in order: ``x y z nx ny nz f_dc_0..2 f_rest_0..44 opacity scale_0..2
+rot_0..3``. As in the reference implementation, ``f_rest`` is stored channel-major
+(all 15 coefficients of R, then G, then B), ``opacity`` is the logit, ``scale_*`` the log
+standard deviations and ``rot_*`` the quaternion ``(w, x, y, z)``; normals are zeros.
+Files with fewer ``f_rest`` (lower SH degree) load with the missing coefficients zero.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from l3d_app.errors import UserError
+from l3d_app.runtime.files import atomic_path
+
+
+def gaussian_ply_fields(n_rest: int = 45) -> list:
+    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+            + [f"f_rest_{i}" for i in range(n_rest)] + ["opacity", "scale_0", "scale_1", "scale_2",
+                                                         "rot_0", "rot_1", "rot_2", "rot_3"])
+
+
+def save_gaussian_ply(path: os.PathLike, model) -> Path:
+    """Write a :class:`~l3d_app.models.gaussians.GaussianModel` (or any object with
+    means, log_scales, quats, opacity_logits, sh_dc (N,1,3), sh_rest (N,K-1,3))."""
+    with torch.no_grad():
+        n = model.means.shape[0]
+        rest = model.sh_rest.detach().float().cpu().transpose(1, 2).reshape(n, -1)      # channel-major
+        cols = [model.means.detach().float().cpu(), torch.zeros(n, 3), model.sh_dc.detach().float().cpu().reshape(n, 3),
+                rest, model.opacity_logits.detach().float().cpu().reshape(n, 1),
+                model.log_scales.detach().float().cpu(), model.quats.detach().float().cpu()]
+        data = torch.cat(cols, 1).numpy().astype("<f4")
+    names = gaussian_ply_fields(rest.shape[1])
+    header = "ply\nformat binary_little_endian 1.0\nelement vertex %d\n" % n
+    header += "".join(f"property float {k}\n" for k in names) + "end_header\n"
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(header.encode("ascii"))
+            f.write(np.ascontiguousarray(data).tobytes())
+    return Path(path)
+
+
+def load_gaussian_ply(path: os.PathLike):
+    """Read a 3DGS PLY -> :class:`~l3d_app.models.gaussians.GaussianModel` (SH padded to degree 3)."""
+    from l3d_app.models.gaussians import GaussianModel
+
+    raw = Path(path).read_bytes()
+    end = raw.find(b"end_header\n")
+    if not raw.startswith(b"ply") or end < 0:
+        raise UserError(f"{path} is not a PLY file")
+    header = raw[:end].decode("ascii", errors="replace").splitlines()
+    if "format binary_little_endian 1.0" not in header:
+        raise UserError(f"{path}: only binary_little_endian Gaussian PLY files are supported")
+    n = next((int(l.split()[2]) for l in header if l.startswith("element vertex")), None)
+    props = [(l.split()[1], l.split()[2]) for l in header if l.startswith("property")]
+    types = {"float": "<f4", "double": "<f8", "uchar": "u1", "int": "<i4"}
+    try:
+        dtype = np.dtype([(name, types[t]) for t, name in props])
+    except KeyError as err:
+        raise UserError(f"{path}: unsupported property type {err}") from err
+    v = np.frombuffer(raw[end + len(b"end_header\n"):], dtype=dtype, count=n)
+    need = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+            "rot_0", "rot_1", "rot_2", "rot_3"]
+    missing = [k for k in need if k not in dtype.names]
+    if missing:
+        raise UserError(f"{path}: not a 3DGS PLY, missing {missing}")
+    col = lambda *k: torch.from_numpy(np.stack([v[x].astype(np.float32) for x in k], -1))  # noqa: E731
+    rest_names = sorted((k for k in dtype.names if re.fullmatch(r"f_rest_\d+", k)), key=lambda k: int(k[7:]))
+    per = len(rest_names) // 3
+    rest = torch.zeros(n, 15, 3)
+    if per:
+        rest[:, :per] = col(*rest_names).reshape(n, 3, per).transpose(1, 2)
+    return GaussianModel(col("x", "y", "z"), col("scale_0", "scale_1", "scale_2"),
+                         col("rot_0", "rot_1", "rot_2", "rot_3"), col("opacity")[:, 0],
+                         col("f_dc_0", "f_dc_1", "f_dc_2")[:, None, :], rest)

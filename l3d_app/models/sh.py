@@ -1,0 +1,74 @@
+"""Real spherical harmonics of degree 0-3 for view-dependent colour (standard 3DGS form).
+
+Coefficients are stored per Gaussian as ``(N, K, 3)`` with ``K = (degree + 1) ** 2`` in
+the order of the 3DGS reference implementation (band 0, then band 1 as -y, z, -x, ...).
+The colour is ``max(SH(dir) + 0.5, 0)``; :func:`rgb_to_sh` / :func:`sh_to_rgb` convert the
+DC term. All functions are plain polynomials in the unit direction, so they are finite and
+smooth everywhere, poles included.
+"""
+
+from __future__ import annotations
+
+import torch
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
+         -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+
+def num_sh_coeffs(degree: int) -> int:
+    """Number of coefficients per colour channel up to ``degree`` (0-3): (degree + 1)^2."""
+    if not 0 <= int(degree) <= 3:
+        raise ValueError(f"SH degree must be in 0..3, got {degree}")
+    return (int(degree) + 1) ** 2
+
+
+def eval_sh(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """Evaluate SH up to ``degree`` (0-3).
+
+    Args:
+        coeffs: (..., K, C) with K >= (degree + 1)^2 (extra coefficients are ignored).
+        dirs: (..., 3) unit viewing directions (camera -> point, world frame).
+    Returns:
+        (..., C) raw SH value (add 0.5 and clamp for a colour, see :func:`sh_to_color`).
+    """
+    k = num_sh_coeffs(degree)
+    if coeffs.shape[-2] < k:
+        raise ValueError(f"degree {degree} needs {k} SH coefficients, got {coeffs.shape[-2]}")
+    c = coeffs
+    out = SH_C0 * c[..., 0, :]
+    if degree < 1:
+        return out
+    x, y, z = (dirs[..., i:i + 1] for i in range(3))
+    out = out - SH_C1 * y * c[..., 1, :] + SH_C1 * z * c[..., 2, :] - SH_C1 * x * c[..., 3, :]
+    if degree < 2:
+        return out
+    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+    out = (out + SH_C2[0] * xy * c[..., 4, :] + SH_C2[1] * yz * c[..., 5, :]
+           + SH_C2[2] * (2.0 * zz - xx - yy) * c[..., 6, :] + SH_C2[3] * xz * c[..., 7, :]
+           + SH_C2[4] * (xx - yy) * c[..., 8, :])
+    if degree < 3:
+        return out
+    return (out + SH_C3[0] * y * (3.0 * xx - yy) * c[..., 9, :] + SH_C3[1] * xy * z * c[..., 10, :]
+            + SH_C3[2] * y * (4.0 * zz - xx - yy) * c[..., 11, :]
+            + SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * c[..., 12, :]
+            + SH_C3[4] * x * (4.0 * zz - xx - yy) * c[..., 13, :]
+            + SH_C3[5] * z * (xx - yy) * c[..., 14, :] + SH_C3[6] * x * (xx - 3.0 * yy) * c[..., 15, :])
+
+
+def sh_to_color(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """(..., C) colour ``max(eval_sh + 0.5, 0)`` as in 3DGS."""
+    return (eval_sh(degree, coeffs, dirs) + 0.5).clamp_min(0.0)
+
+
+def rgb_to_sh(rgb: torch.Tensor) -> torch.Tensor:
+    """DC coefficient giving colour ``rgb`` (any shape)."""
+    return (rgb - 0.5) / SH_C0
+
+
+def sh_to_rgb(dc: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`rgb_to_sh`."""
+    return dc * SH_C0 + 0.5
