@@ -1,0 +1,110 @@
+"""neural_sdf: fit a neural SDF to a point cloud (surface samples, no normals).
+
+``python main.py task=neural_sdf`` (built-in: points on a torus) or
+``data=bunny data.path=../shared/data/bunny/bunny_pointcloud.npz``.
+
+Model: :class:`~l3d_app.models.sdf_net.SDFNetwork` (harmonic encoding, Softplus MLP, no output
+activation, geometric init to a sphere). Loss per step, on ``batch_points`` cloud points
+``P`` and as many uniform points ``Q`` in the padded bounds of the cloud:
+
+    mean |f(P)|                                  the surface is the zero level set
+  + w_eikonal  * mean (|grad f(P u Q)| - 1)^2    a distance field (safe norm: finite at kinks)
+  + w_offsurface * mean exp(-offsurface_scale |f(Q)|)   no spurious zeros away from the points
+
+Outputs: ``mesh.<ply|obj>`` (marching cubes of f = 0), ``mesh.gif`` (360 sphere-traced shading of
+the SDF), ``metrics.json`` with ``chamfer`` (symmetric mean of non-squared nearest distances
+between mesh samples and the cloud, world units), ``f1`` at ``f1_threshold``, ``seconds``.
+"""
+
+from __future__ import annotations
+
+from typing import Dict
+
+import torch
+
+from l3d_app.errors import UserError
+from l3d_app.geometry.camera_paths import turntable
+from l3d_app.geometry.marching_cubes import sdf_to_mesh
+from l3d_app.geometry.mesh_io import save_mesh
+from l3d_app.geometry.pointcloud import PointCloud
+from l3d_app.geometry.rays import camera_rays
+from l3d_app.geometry.sampling import sample_surface
+from l3d_app.losses.eikonal import eikonal_loss
+from l3d_app.metrics.chamfer import chamfer_distance
+from l3d_app.metrics.fscore import fscore
+from l3d_app.models.sdf_net import SDFNetwork
+from l3d_app.registry import DATASETS, TASKS
+from l3d_app.render.sphere_tracing import render_sdf_shaded
+from l3d_app.render.volume import render_rays_chunked
+from l3d_app.runtime.media import save_gif
+from l3d_app.runtime.training import Trainable, train
+from l3d_app.tasks.common import require_positive
+
+
+@TASKS.register("neural_sdf")
+def neural_sdf(cfg, ctx) -> dict:
+    require_positive(cfg, "iters", "batch_points", "lr")
+    cloud = DATASETS.build(cfg.data)
+    points = cloud.points if isinstance(cloud, PointCloud) else torch.as_tensor(cloud)
+    points = points.float().to(ctx.device)
+    lo, hi = points.min(0).values, points.max(0).values
+    pad = float(cfg.bounds_padding) * float((hi - lo).max())
+    lo, hi = lo - pad, hi + pad
+    box = (lo.tolist(), hi.tolist())
+    radius = float(cfg.init_radius) * 0.5 * float((hi - lo).min())
+    net = SDFNetwork(radius=radius, **dict(cfg.model)).to(ctx.device)
+    opt = torch.optim.Adam(net.parameters(), lr=float(cfg.lr))
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, int(cfg.iters)),
+                                                       eta_min=float(cfg.lr) * 0.05)
+    trainable = Trainable({"sdf": net}, opt, extra={"scheduler": sched})
+    n = int(cfg.batch_points)
+    centre = 0.5 * (lo + hi)
+
+    def step_fn(step: int) -> Dict[str, torch.Tensor]:
+        idx = torch.randint(0, points.shape[0], (n,), generator=ctx.generator,
+                            device=ctx.generator.device).to(ctx.device)
+        u = torch.rand(n, 3, generator=ctx.generator, device=ctx.generator.device).to(ctx.device)
+        q = lo + u * (hi - lo)
+        x = torch.cat([points[idx], q]).requires_grad_(True)
+        f = net(x)[0]
+        (grad,) = torch.autograd.grad(f.sum(), x, create_graph=True)
+        surf = f[:n].abs().mean()
+        eik = eikonal_loss(grad)
+        off = torch.exp(-float(cfg.offsurface_scale) * f[n:].abs()).mean()
+        loss = surf + float(cfg.w_eikonal) * eik + float(cfg.w_offsurface) * off
+        return {"loss": loss, "surface": surf.detach(), "eikonal": eik.detach(), "offsurface": off.detach()}
+
+    def eval_fn(step: int) -> Dict[str, float]:
+        return {"surface_abs": float(net(points)[0].abs().mean())}
+
+    with ctx.stopwatch.stage("train"):
+        result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
+                       checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="neural_sdf",
+                       after_step=lambda step: sched.step())
+    metrics: Dict[str, float] = {"iters": result.step, "n_params": sum(p.numel() for p in net.parameters()),
+                                 "n_points": int(points.shape[0]),
+                                 "surface_abs": round(result.metrics.get("surface_abs", float("nan")), 6)}
+    sdf = net.sdf
+    fmt = str(cfg.mesh_format).lower().lstrip(".")
+    if fmt not in ("ply", "obj"):
+        raise UserError(f"mesh_format must be ply or obj, got {cfg.mesh_format!r}")
+    try:
+        mesh = sdf_to_mesh(sdf, resolution=int(cfg.mesh_resolution), bounds=box, device=ctx.device)
+    except UserError as err:
+        print(f"l3d_app: warning: no mesh written: {err}", flush=True)
+        return {**metrics, "mesh_faces": 0}
+    save_mesh(mesh, ctx.path(f"mesh.{fmt}"))
+    metrics["mesh_faces"] = int(mesh.num_faces)
+    with torch.no_grad():
+        pred = sample_surface(mesh.to("cpu"), int(cfg.eval_points), generator=torch.Generator().manual_seed(2)).points
+        ref = points.cpu()
+        metrics["chamfer"] = round(float(chamfer_distance(pred, ref, squared=False)), 6)
+        metrics["f1"] = round(fscore(pred, ref, float(cfg.f1_threshold))["f1"], 4)
+    if int(cfg.gif_frames) > 0:
+        ext = float((hi - lo).norm())
+        cams = turntable(int(cfg.gif_frames), 1.6 * ext, float(cfg.gif_elevation), 45.0, int(cfg.gif_size),
+                         at=centre.tolist(), device=ctx.device)
+        o, d = camera_rays(cams, normalize=True)
+        frames = render_rays_chunked(lambda a, b: {"rgb": render_sdf_shaded(sdf, a, b, box)}, o, d, 8192)["rgb"]
+        save_gif(ctx.path("mesh.gif"), frames, fps=float(cfg.fps))
+    return metrics

@@ -1,0 +1,137 @@
+"""Neural surfaces: eikonal loss at kinks, SDF network init, SDF volume rendering, tasks volsdf / neural_sdf."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from l3d_app.app import run_task
+from l3d_app.errors import UserError
+from l3d_app.geometry.sdf import Box, Sphere
+from l3d_app.losses.eikonal import eikonal_at, eikonal_loss, sdf_gradient
+from l3d_app.models.sdf_net import SDFField, SDFNetwork, pretrain_sphere
+from l3d_app.render.sdf_volume import render_sdf_rays
+
+TINY = ["data.image_size=32", "data.n_train=48", "data.n_val=0", "data.n_test=2", "data.antialias=1",
+        "tensorboard=false", "threads=1"]
+
+
+def test_eikonal_loss_is_finite_at_kinks_and_zero_for_exact_sdfs():
+    # a sphere's centre, a box's centre / medial planes / edges, a zero gradient
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.3, 0.3, 0.0], [0.5, 0.5, 0.2]], dtype=torch.float64)
+    for sdf in (Sphere(1.0), Box((1.0, 1.0, 1.0))):
+        g = sdf_gradient(sdf, pts, create_graph=False)
+        assert torch.isfinite(g).all()
+    grad = torch.zeros(4, 3, dtype=torch.float64, requires_grad=True)
+    loss = eikonal_loss(grad)
+    (gg,) = torch.autograd.grad(loss, grad)
+    assert float(loss.detach()) == 1.0 and torch.isfinite(gg).all()
+    # away from kinks an exact SDF has loss ~0; a scaled one does not
+    x = torch.randn(256, 3, dtype=torch.float64) + 2.0
+    assert float(eikonal_loss(sdf_gradient(Sphere(0.5), x))) < 1e-20
+    assert float(eikonal_loss(sdf_gradient(lambda p: 2 * Sphere(0.5)(p), x))) == pytest.approx(1.0)
+
+
+def test_eikonal_through_a_network_has_finite_parameter_gradients():
+    net = SDFNetwork(n_frequencies=2, hidden=16, n_layers=2, n_features=0).double()
+    pts = torch.zeros(8, 3, dtype=torch.float64)                 # the init sphere's centre: a kink
+    loss = eikonal_at(net.sdf, pts)
+    grads = torch.autograd.grad(loss, list(net.parameters()), allow_unused=True)  # output bias: unused
+    assert torch.isfinite(loss) and all(g is None or torch.isfinite(g).all() for g in grads)
+    assert sum(g is not None for g in grads) >= len(grads) - 1
+
+
+def test_geometric_init_and_pretraining_give_a_sphere():
+    torch.manual_seed(0)
+    net = SDFNetwork(n_frequencies=4, hidden=32, n_layers=2, radius=0.5)
+    x = torch.rand(2000, 3) * 2 - 1
+    ref = x.norm(dim=-1) - 0.5
+    with torch.no_grad():
+        f0 = net(x)[0]
+    r = x.norm(dim=-1)
+    assert (f0[r < 0.2] < 0).float().mean() > 0.9 and (f0[r > 0.9] > 0).float().mean() > 0.9   # a sphere-ish start
+    err = pretrain_sphere(net, 0.5, ((-1,) * 3, (1,) * 3), steps=100, n_points=1024, generator=torch.Generator().manual_seed(0))
+    assert err < 0.03 and float((net(x)[0] - ref).abs().mean()) < 0.03
+    assert float((net.gradient(x, create_graph=False)[1].norm(dim=-1) - 1).abs().mean()) < 0.1
+
+
+@pytest.mark.parametrize("density", ["volsdf", "neus"])
+def test_sdf_volume_rendering_of_an_exact_sphere(density):
+    """An opaque analytic sphere: hits are opaque at the analytic depth, misses transparent,
+    the fine samples concentrate at the surface."""
+    sph = Sphere(0.5)
+    o = torch.tensor([[0.0, 0.0, -2.0], [0.0, 0.2, -2.0], [0.0, 0.9, -2.0]])
+    d = torch.tensor([[0.0, 0.0, 1.0]]).expand(3, 3)
+    colour = lambda p, v: (sph(p), torch.full((p.shape[0], 3), 0.25))  # noqa: E731
+    out = render_sdf_rays(sph, colour, o, d, ((-1, -1, -1), (1, 1, 1)), density=density, alpha=200.0, beta=0.005,
+                          s=400.0, n_coarse=64, n_fine=32, background=(1.0, 1.0, 1.0))
+    ref_t = 2.0 - torch.sqrt(0.25 - torch.tensor([0.0, 0.2]) ** 2)
+    assert out["opacity"][:2].min() > 0.99 and out["opacity"][2] < 1e-3
+    torch.testing.assert_close(out["depth"][:2] / out["opacity"][:2], ref_t, atol=0.02, rtol=0)
+    torch.testing.assert_close(out["color"][:2], torch.full((2, 3), 0.25), atol=0.01, rtol=0)
+    torch.testing.assert_close(out["color"][2], torch.ones(3), atol=1e-3, rtol=0)
+    near_surface = (out["t"][:2] - ref_t[:, None]).abs() < 0.1
+    assert near_surface.float().mean() > 0.5        # samples are placed near the zero level set
+    assert float(out["samples_per_ray"]) == 96.0 and float(out["fine_samples_per_ray"]) == 32.0
+
+
+def test_sdf_field_config_builds_and_rejects_unknown_encoding():
+    field = SDFField(scene_box=((-1,) * 3, (1,) * 3), sdf_net={"encoding": "grid", "grid": {"n_levels": 2}})
+    f, rgb = field(torch.rand(5, 3), torch.rand(5, 3))
+    assert f.shape == (5,) and rgb.shape == (5, 3)
+    with pytest.raises(UserError):
+        SDFNetwork(encoding="fourier")
+
+
+def test_volsdf_short_run_improves_psnr_and_writes_everything(compose, tmp_path):
+    cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=120", "eval_every=40",
+                  "batch_rays=256", "lr=0.005", "pretrain_steps=50", "gif_frames=2", "mesh_resolution=32",
+                  "eval_points=2000", "mesh_format=obj")
+    assert (cfg.beta, cfg.alpha, cfg.density) == (0.05, 10.0, "volsdf")
+    run_task(cfg, out_dir=tmp_path / "run")
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    for key in ("psnr", "ssim", "chamfer", "f1", "seconds", "samples_per_ray", "iters", "n_params", "beta"):
+        assert key in m, key
+    hist = [h["psnr"] for h in m["history"]]
+    assert len(hist) == 3 and hist[-1] > hist[0] + 0.25 and hist[-1] > 14.5, hist
+    assert np.isfinite(m["chamfer"]) and 0 <= m["f1"] <= 1
+    assert 0 < m["samples_per_ray"] <= 96
+    for name in ("render.gif", "geometry.gif", "mesh.obj", "test_views.png", "checkpoint.pt"):
+        assert (tmp_path / "run" / name).exists(), name
+
+
+def test_volsdf_neus_variant_and_knobs_compose(compose, tmp_path):
+    cfg = compose("task=volsdf", "density=neus", "s=1000", "beta=0.02")
+    assert (cfg.density, cfg.s, cfg.beta) == ("neus", 1000.0, 0.02)
+    cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "density=neus", "iters=4",
+                  "eval_every=4", "batch_rays=64", "pretrain_steps=5", "gif_frames=0", "mesh_resolution=24",
+                  "eval_points=500")
+    run_task(cfg, out_dir=tmp_path / "run")
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert m["density"] == "neus" and np.isfinite(m["psnr"])
+    with pytest.raises(UserError):
+        run_task(compose("task=volsdf", *TINY, "density=unisurf"), out_dir=tmp_path / "bad")
+
+
+def test_neural_sdf_fits_the_builtin_torus(compose, tmp_path):
+    cfg = compose("task=neural_sdf", "tensorboard=false", "threads=1", "iters=150", "eval_every=50",
+                  "batch_points=512", "mesh_resolution=32", "eval_points=2000", "gif_frames=2", "gif_size=24")
+    run_task(cfg, out_dir=tmp_path / "run")
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert m["f1"] > 0.6 and m["chamfer"] < 0.15 and m["surface_abs"] < 0.02, m
+    for name in ("mesh.ply", "mesh.gif", "metrics.json"):
+        assert (tmp_path / "run" / name).exists(), name
+
+
+def test_bunny_loader(tmp_path):
+    from l3d_app.data.bunny import bunny_points
+
+    pts = np.random.default_rng(0).normal(size=(10, 3)).astype(np.float32) + 5
+    np.savez(tmp_path / "b.npz", verts=pts)
+    cloud = bunny_points(str(tmp_path / "b.npz"))
+    assert cloud.points.shape == (5, 3)
+    torch.testing.assert_close(cloud.points.mean(0), torch.zeros(3), atol=1e-5, rtol=0)
+    torch.testing.assert_close(cloud.points[1] - cloud.points[0], torch.from_numpy(pts[2] - pts[0]))
+    with pytest.raises(UserError):
+        bunny_points(str(tmp_path / "missing.npz"))
