@@ -147,7 +147,7 @@ def plot(rows: Sequence[Dict[str, object]], error_key: str, path: Path) -> None:
     ys = [float(r[error_key]) for r in rows]
     ax.scatter(xs, ys, c=["tab:red" if r["pareto"] else "tab:gray" for r in rows], zorder=3)
     for r, x, y in zip(rows, xs, ys):
-        ax.annotate(r["overrides"] or r["job"], (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points")
+        ax.annotate(r["job"], (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points")
     front = sorted((x, y) for r, x, y in zip(rows, xs, ys) if r["pareto"])
     if len(front) > 1:
         ax.plot(*zip(*front), color="tab:red", lw=1, label="Pareto front")
