@@ -19,14 +19,13 @@ import hashlib
 import json
 import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Sequence, Tuple
 
 import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry import primitives as P
-from l3d_app.geometry.cameras import Cameras, look_at_cameras, stack_cameras
+from l3d_app.geometry.cameras import Cameras, look_at_cameras
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.transforms import euler_xyz
 from l3d_app.registry import DATASETS

@@ -27,7 +27,7 @@ cost is ``sum over iterations of active rays``.
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple, Optional, Sequence, Tuple, Union
+from typing import Callable, NamedTuple, Sequence, Tuple, Union
 
 import torch
 

@@ -83,6 +83,12 @@ class TrainResult:
     interrupted: bool
     skipped_steps: int
     restores: int
+    history: List[Dict[str, float]] = field(default_factory=list)
+
+    def history_rows(self, digits: int = 5) -> List[Dict[str, float]]:
+        """Every evaluation of the run, resumed parts included, as {"step": s, metric: value}."""
+        return [{"step": int(s), **{k: round(float(v), digits) for k, v in m.items()}}
+                for s, m in self.history]
 
 
 class _StopFlag:
@@ -231,7 +237,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
         ctx.interrupted = True
         ctx.logger.text("train/interrupted", f"stopped by signal {stop.signal} at step {done}")
     return TrainResult(step=done, metrics=metrics, interrupted=interrupted,
-                       skipped_steps=skipped, restores=restores)
+                       skipped_steps=skipped, restores=restores, history=list(history["eval"]))
 
 
 def _evaluate(ctx, eval_fn, step: int, history: Dict[str, Any]) -> Dict[str, float]:

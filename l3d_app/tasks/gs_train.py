@@ -15,7 +15,6 @@ layout), ``metrics.json`` (psnr, ssim, n_gaussians, seconds, iters, history).
 
 from __future__ import annotations
 
-import math
 import os
 import signal
 import time
@@ -24,6 +23,7 @@ from typing import Dict
 import numpy as np
 import torch
 
+from l3d_app.geometry.gaussian_ply import save_gaussian_ply
 from l3d_app.metrics.image import psnr, ssim
 from l3d_app.models.gaussians import DensityControl, init_from_points
 from l3d_app.registry import DATASETS, TASKS
@@ -135,15 +135,8 @@ def gs_train(cfg, ctx) -> dict:
         save_gif(ctx.path("test_views.gif"), torch.cat([pred, target], 2), fps=float(cfg.fps) / 4)
         if prog_frames:
             save_gif(ctx.path("progress.gif"), torch.stack(prog_frames), fps=float(cfg.fps))
-    try:
-        from l3d_app.geometry.gaussian_ply import save_gaussian_ply
-
-        save_gaussian_ply(ctx.path("point_cloud.ply"), model)
-    except ImportError:
-        pass
-    from l3d_app.tasks.train_nerf import _history
-
+    save_gaussian_ply(ctx.path("point_cloud.ply"), model)
     metrics.update({"n_gaussians": model.num, "iters": result.step,
                     "train_seconds": round(stats["train_seconds"], 3),
-                    "history": [{"step": s, **{k: round(float(v), 5) for k, v in m.items()}} for s, m in _history(ctx)]})
+                    "history": result.history_rows()})
     return metrics

@@ -153,18 +153,9 @@ def train_nerf(cfg, ctx) -> dict:
         "samples_per_ray": round(stats["samples_per_ray"], 3),
         "rays_per_second": round(stats["steps"] * batch / max(stats["train_seconds"], 1e-9), 1),
         "steps_per_epoch": steps_per_epoch,
-        "history": [{"step": s, **{k: round(v, 5) for k, v in m.items()}} for s, m in _history(ctx)],
+        "history": result.history_rows(),
     })
     return metrics
-
-
-def _history(ctx):
-    """(step, eval metrics) pairs of this run from the loop's checkpoint (includes resumed runs)."""
-    path = ctx.out_dir / "checkpoint.pt"
-    if not path.exists():
-        return []
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    return [(int(s), dict(m)) for s, m in state.get("history", {}).get("eval", [])]
 
 
 @torch.no_grad()

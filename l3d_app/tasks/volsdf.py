@@ -145,17 +145,9 @@ def volsdf(cfg, ctx) -> dict:
         "samples_per_ray": round(stats["samples_per_ray"], 3),
         "fine_samples_per_ray": round(stats["fine_samples_per_ray"], 3),
         "rays_per_second": round(stats["steps"] * batch / max(stats["train_seconds"], 1e-9), 1),
-        "history": [{"step": s, **{k: round(v, 5) for k, v in m.items()}} for s, m in _history(ctx)],
+        "history": result.history_rows(),
     })
     return metrics
-
-
-def _history(ctx):
-    path = ctx.out_dir / "checkpoint.pt"
-    if not path.exists():
-        return []
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    return [(int(s), dict(m)) for s, m in state.get("history", {}).get("eval", [])]
 
 
 def _ground_truth_points(cfg, n: int):
