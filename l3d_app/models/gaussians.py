@@ -20,6 +20,7 @@ from typing import Dict, Optional
 
 import torch
 
+from l3d_app.geometry.normals import knn
 from l3d_app.models.sh import rgb_to_sh
 
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
@@ -50,14 +51,13 @@ class GaussianModel(torch.nn.Module):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
 
-def knn_mean_distance(points: torch.Tensor, k: int = 3, block: int = 2048) -> torch.Tensor:
-    """(N,) mean distance of each point to its k nearest other points (blocked cdist)."""
-    out = []
-    for s in range(0, points.shape[0], block):
-        d = torch.cdist(points[s:s + block], points)
-        d[torch.arange(d.shape[0]), torch.arange(s, s + d.shape[0])] = float("inf")
-        out.append(d.topk(min(k, max(1, points.shape[0] - 1)), largest=False).values.mean(-1))
-    return torch.cat(out)
+def knn_mean_distance(points: torch.Tensor, k: int = 3) -> torch.Tensor:
+    """(N,) mean distance of each point to its k nearest other points (shared exact kNN)."""
+    n = points.shape[0]
+    if n < 2:
+        return torch.zeros(n, dtype=points.dtype, device=points.device)
+    _, sq = knn(points, min(k, n - 1) + 1)  # the first neighbour is the point itself
+    return sq[:, 1:].clamp_min(0).sqrt().mean(-1)
 
 
 def init_from_points(points: torch.Tensor, colors: Optional[torch.Tensor] = None, sh_degree: int = 3,

@@ -27,18 +27,19 @@ from typing import Dict
 import torch
 
 from l3d_app.errors import UserError
-from l3d_app.geometry.cameras import look_at_cameras
+from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.geometry.sdf import box_sdf
+from l3d_app.metrics.image import psnr
 from l3d_app.registry import DATASETS, TASKS
 from l3d_app.render.densities import laplace_cdf
 from l3d_app.render.samplers import stratified_samples
 from l3d_app.render.volume import VolumeRenderer, composite, render_rays_chunked
-from l3d_app.metrics.image import psnr
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.paths import resolve_path
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import require_positive
+
 
 class SDFBox(torch.nn.Module):
     """Learnable box: ``center`` (3,) and ``size`` (3,) side lengths, world units."""
@@ -129,10 +130,8 @@ def box(cfg, ctx) -> dict:
 @torch.no_grad()
 def _turntable(cfg, ctx, model: SDFBox) -> None:
     """A small volume-rendered turntable of the fitted box (NDC focal 1 = 90 degree fov)."""
-    n = int(cfg.gif_frames)
-    azim = torch.arange(n, dtype=torch.float32) * (360.0 / n)
-    cams = look_at_cameras(float(cfg.gif_distance), float(cfg.gif_elevation), azim, 90.0,
-                           int(cfg.gif_size), device=ctx.device)
+    cams = turntable(int(cfg.gif_frames), float(cfg.gif_distance), float(cfg.gif_elevation), 90.0,
+                     int(cfg.gif_size), device=ctx.device)
     renderer = VolumeRenderer(n_samples=int(cfg.n_samples), near=float(cfg.near), far=float(cfg.far),
                               chunk=int(cfg.chunk), mode="alpha")
     frames = renderer(model.field, cams)["image"]
