@@ -1,0 +1,173 @@
+"""Score distillation sampling (SDS, DreamFusion): a diffusion prior's gradient as a loss.
+
+For a model-space sample ``x`` (pixels in [-1, 1] or VAE latents, see
+:mod:`l3d_app.diffusion.prior`), one SDS step draws ``t ~ U{t_lo..t_hi}`` and
+``eps ~ N(0, I)``, forms ``x_t = sqrt(abar_t) x + sqrt(1 - abar_t) eps`` and asks the
+prior for the classifier-free-guided noise
+
+    eps_hat = eps_u + s (eps_c - eps_u)            (one batched call: cond and uncond)
+
+The SDS gradient ``g = w(t) (eps_hat - eps)`` (no Jacobian through the prior) is applied
+with the *target trick*: ``loss = 0.5 * sum((x - sg(x - g))^2)`` whose gradient w.r.t. ``x``
+is exactly ``g`` (summed over the batch and all elements, so every sample receives its own
+``g`` unscaled). The loss *value* equals ``0.5 ||g||^2``; it is a diagnostic, not an
+objective that decreases.
+
+A non-finite ``g`` (a prior returning NaN/Inf) is never applied: by default it raises
+:class:`NonFiniteSDSGradient`; with ``on_nonfinite="flag"`` the returned loss is a NaN
+constant without a graph (the shared training loop then skips the step) and
+``SDSOutput.finite`` is False.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import torch
+import torch.nn.functional as F
+
+from l3d_app.diffusion.prior import DiffusionPrior, PromptEmbedding
+from l3d_app.errors import UserError
+
+WEIGHTINGS = ("sds", "uniform")  # w(t) = 1 - abar_t (DreamFusion) | w(t) = 1
+
+
+class NonFiniteSDSGradient(FloatingPointError):
+    """The prior produced a non-finite SDS gradient; nothing was applied."""
+
+
+@dataclass
+class SDSOutput:
+    """One SDS evaluation.
+
+    loss: scalar whose gradient w.r.t. ``x`` is ``grad`` (NaN constant if not finite);
+    t: (B,) long timesteps used; w: (B,) weights w(t); grad: (B, *latent_shape) detached
+    SDS gradient (zeros where not finite); grad_norm: mean over the batch of ||g_b||_2
+    (NaN when not finite); finite: whether ``grad`` was finite everywhere.
+    """
+
+    loss: torch.Tensor
+    t: torch.Tensor
+    w: torch.Tensor
+    grad: torch.Tensor
+    grad_norm: float
+    finite: bool
+
+
+def timestep_range(num_timesteps: int, t_min: float = 0.02, t_max: float = 0.98) -> Tuple[int, int]:
+    """Inclusive integer range [lo, hi] of timesteps for fractions ``t_min <= t_max`` in [0, 1]."""
+    if not (0.0 <= float(t_min) <= float(t_max) <= 1.0):
+        raise UserError(f"need 0 <= t_min <= t_max <= 1, got t_min={t_min}, t_max={t_max}")
+    T = int(num_timesteps)
+    lo = min(T - 1, max(0, int(round(float(t_min) * (T - 1)))))
+    hi = min(T - 1, max(lo, int(round(float(t_max) * (T - 1)))))
+    return lo, hi
+
+
+def sds_weight(alphas_cumprod: torch.Tensor, t: torch.Tensor, weighting: str = "sds") -> torch.Tensor:
+    """w(t) of shape (B,): ``1 - abar_t`` ("sds") or ones ("uniform")."""
+    if weighting == "sds":
+        return 1.0 - alphas_cumprod.to(t.device)[t].float()
+    if weighting == "uniform":
+        return torch.ones(t.shape, device=t.device)
+    raise UserError(f"unknown SDS weighting '{weighting}' (known: {', '.join(WEIGHTINGS)})")
+
+
+def guided_noise(prior: DiffusionPrior, x_t: torch.Tensor, t: torch.Tensor,
+                 embedding: PromptEmbedding, guidance_scale: float) -> torch.Tensor:
+    """Classifier-free-guided noise ``eps_u + s (eps_c - eps_u)`` from ONE batched call.
+
+    x_t: (B, *latent_shape); t: (B,) long; returns float32 (B, *latent_shape).
+    """
+    B = x_t.shape[0]
+    cond = embedding.cond.to(x_t.device)
+    uncond = embedding.uncond.to(x_t.device)
+    cond = cond.expand(B, *cond.shape[1:])
+    uncond = uncond.expand(B, *uncond.shape[1:])
+    eps = prior.predict_noise(torch.cat([x_t, x_t]), torch.cat([t, t]), torch.cat([cond, uncond]))
+    eps_c, eps_u = eps.float().chunk(2)
+    return eps_u + float(guidance_scale) * (eps_c - eps_u)
+
+
+def sds_loss(prior: DiffusionPrior, x: torch.Tensor, embedding: PromptEmbedding,
+             guidance_scale: float = 7.5, t_min: float = 0.02, t_max: float = 0.98,
+             weighting: str = "sds", generator: Optional[torch.Generator] = None,
+             t: Optional[torch.Tensor] = None, noise: Optional[torch.Tensor] = None,
+             on_nonfinite: str = "raise") -> SDSOutput:
+    """SDS loss of model-space ``x`` (B, *latent_shape), requiring grad, under ``prompt``.
+
+    ``t``/``noise`` may be given (tests); otherwise drawn from ``generator`` (on x's device).
+    The prior runs without gradients; only ``x`` gets one.
+    """
+    if on_nonfinite not in ("raise", "flag"):
+        raise UserError(f"on_nonfinite must be 'raise' or 'flag', got '{on_nonfinite}'")
+    B = x.shape[0]
+    device = x.device
+    if t is None:
+        lo, hi = timestep_range(prior.num_timesteps, t_min, t_max)
+        gen_device = generator.device if generator is not None else device
+        t = torch.randint(lo, hi + 1, (B,), generator=generator, device=gen_device).to(device)
+    t = t.to(device=device, dtype=torch.long)
+    if noise is None:
+        gen_device = generator.device if generator is not None else device
+        noise = torch.randn(x.shape, generator=generator, device=gen_device).to(device)
+    x0 = x.detach().float()
+    noise = noise.to(device=device, dtype=torch.float32)
+    with torch.no_grad():
+        x_t = prior.add_noise(x0, t, noise)
+        model_dtype = next((p.dtype for p in prior.parameters()), torch.float32)
+        eps_hat = guided_noise(prior, x_t.to(model_dtype), t, embedding, guidance_scale)
+        w = sds_weight(prior.alphas_cumprod, t, weighting)
+        grad = w.view(-1, *([1] * (x.dim() - 1))) * (eps_hat - noise)
+        finite = bool(torch.isfinite(grad).all())
+    if not finite:
+        bad = int((~torch.isfinite(grad)).flatten(1).any(1).sum())
+        msg = (f"non-finite SDS gradient in {bad}/{B} samples at t={t.tolist()} "
+               f"(guidance_scale={guidance_scale}); not applied")
+        if on_nonfinite == "raise":
+            raise NonFiniteSDSGradient(msg)
+        return SDSOutput(loss=torch.full((), float("nan"), device=device), t=t, w=w,
+                         grad=torch.zeros_like(grad), grad_norm=float("nan"), finite=False)
+    target = (x0 - grad).to(x.dtype)
+    loss = 0.5 * F.mse_loss(x, target, reduction="sum")
+    grad_norm = float(grad.flatten(1).norm(dim=1).mean())
+    return SDSOutput(loss=loss, t=t, w=w, grad=grad, grad_norm=grad_norm, finite=True)
+
+
+class SDSLoss:
+    """SDS with fixed settings: ``SDSLoss(guidance_scale=...)(prior, x, embedding, generator)``."""
+
+    def __init__(self, guidance_scale: float = 7.5, t_min: float = 0.02, t_max: float = 0.98,
+                 weighting: str = "sds", on_nonfinite: str = "raise"):
+        timestep_range(1000, t_min, t_max)  # validates the fractions early
+        if weighting not in WEIGHTINGS:
+            raise UserError(f"unknown SDS weighting '{weighting}' (known: {', '.join(WEIGHTINGS)})")
+        self.guidance_scale, self.t_min, self.t_max = float(guidance_scale), float(t_min), float(t_max)
+        self.weighting, self.on_nonfinite = weighting, on_nonfinite
+
+    def __call__(self, prior: DiffusionPrior, x: torch.Tensor, embedding: PromptEmbedding,
+                 generator: Optional[torch.Generator] = None) -> SDSOutput:
+        return sds_loss(prior, x, embedding, self.guidance_scale, self.t_min, self.t_max,
+                        self.weighting, generator, on_nonfinite=self.on_nonfinite)
+
+
+def rgb_to_model_space(prior: DiffusionPrior, images: torch.Tensor, channels_last: bool = False,
+                       resize: bool = True) -> torch.Tensor:
+    """Rendered RGB in [0, 1] -> the prior's model space, differentiably.
+
+    images: (B, 3, H, W), or (B, H, W, 3) with ``channels_last``. With ``resize`` the
+    images are bilinearly resized to ``prior.image_size`` first (antialiased when
+    shrinking). Returns (B, *latent_shape) via :meth:`DiffusionPrior.encode` (the pixel
+    prior maps to [-1, 1]; a latent prior runs its encoder).
+    """
+    if channels_last:
+        images = images.permute(0, 3, 1, 2)
+    if images.dim() != 4 or images.shape[1] != 3:
+        raise UserError(f"expected RGB images (B, 3, H, W), got shape {tuple(images.shape)}")
+    size = int(prior.image_size)
+    if resize and tuple(images.shape[-2:]) != (size, size):
+        shrink = images.shape[-1] > size or images.shape[-2] > size
+        images = F.interpolate(images, size=(size, size), mode="bilinear", align_corners=False,
+                               antialias=shrink)
+    return prior.encode(images)
