@@ -45,6 +45,8 @@ MODULES = (
     "l3d_app.data.bunny",
     "l3d_app.tasks.volsdf",
     "l3d_app.tasks.neural_sdf",
+    "l3d_app.diffusion.builtin_prior",
+    "l3d_app.tasks.train_prior",
     "l3d_app.diffusion.stable_diffusion",
 )
 

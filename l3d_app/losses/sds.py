@@ -78,7 +78,8 @@ def guided_noise(prior: DiffusionPrior, x_t: torch.Tensor, t: torch.Tensor,
                  embedding: PromptEmbedding, guidance_scale: float) -> torch.Tensor:
     """Classifier-free-guided noise ``eps_u + s (eps_c - eps_u)`` from ONE batched call.
 
-    x_t: (B, *latent_shape); t: (B,) long; returns float32 (B, *latent_shape).
+    x_t: (B, *latent_shape); t: (B,) long; the embedding's leading dimension is 1 (one
+    prompt for the batch) or B (one prompt per sample). Returns float32 (B, *latent_shape).
     """
     B = x_t.shape[0]
     cond = embedding.cond.to(x_t.device)

@@ -1,0 +1,142 @@
+"""train_prior: train the built-in diffusion prior(s) on procedural prompt images.
+
+Each step draws a fresh batch of ``batch_size`` images of random prompts
+(:mod:`l3d_app.data.prompt_images`) and takes one AdamW step on the DDPM epsilon-MSE of
+the pixel prior and/or the latent prior (``space`` = pixel | latent | both), with
+classifier-free-guidance slot dropout. The latent prior first trains its autoencoder for
+``ae_iters`` steps (reconstruction MSE), fixes the latent scale (1 / std of the latents of
+a fixed batch) and then trains its U-Net. Exponential moving averages of the weights
+(``ema_decay``) are what gets evaluated and exported.
+
+Evaluation (every ``eval_every`` steps and at the end): DDIM samples (``sample_steps``
+steps, guidance ``eval_guidance``) of ``eval_prompts`` fully specified prompts per space,
+scored by the independent checker (:mod:`l3d_app.metrics.prompt_match`) as
+``sample_match_<space>``. Runs through the shared training loop (checkpoints, resume,
+NaN guard). Outputs: ``builtin_prior.pt`` (float16 weights, loadable with
+``prior.checkpoint=<run dir>/builtin_prior.pt``; with ``export=PATH`` also copied there),
+``samples_<space>.png``, ``metrics.json``.
+"""
+
+from __future__ import annotations
+
+import copy
+import shutil
+from typing import Dict
+
+import torch
+
+from l3d_app.data.prompt_images import prompt_batch
+from l3d_app.diffusion.builtin_prior import SPACES, BuiltinPrior, export_state
+from l3d_app.diffusion.sampling import ddim_sample
+from l3d_app.errors import UserError
+from l3d_app.metrics.prompt_match import match_rate
+from l3d_app.registry import TASKS
+from l3d_app.runtime.files import atomic_path
+from l3d_app.runtime.media import save_png
+from l3d_app.runtime.paths import resolve_path
+from l3d_app.runtime.training import Trainable, train
+from l3d_app.tasks.common import require_positive
+from l3d_app.tasks.prior_common import full_prompts, image_grid
+
+
+def _spaces(space: str):
+    if space == "both":
+        return list(SPACES)
+    if space not in SPACES:
+        raise UserError(f"space must be pixel, latent or both, got '{space}'")
+    return [space]
+
+
+@torch.no_grad()
+def _ema_update(ema: torch.nn.Module, live: torch.nn.Module, decay: float) -> None:
+    for e, p in zip(ema.parameters(), live.parameters()):
+        e.lerp_(p, 1.0 - decay)
+    for e, b in zip(ema.buffers(), live.buffers()):
+        e.copy_(b)
+
+
+@TASKS.register("train_prior")
+def train_prior(cfg, ctx) -> dict:
+    """Train, evaluate sample match rates, export the float16 checkpoint; return metrics."""
+    require_positive(cfg, "iters", "batch_size", "lr", "image_size", "channels", "eval_prompts", "sample_steps")
+    spaces = _spaces(str(cfg.space))
+    S, dev, gen = int(cfg.image_size), ctx.device, ctx.generator
+    ae_iters = int(cfg.ae_iters) if "latent" in spaces else 0
+    if ae_iters >= int(cfg.iters):
+        raise UserError(f"ae_iters ({ae_iters}) must be smaller than iters ({cfg.iters})")
+    arch = dict(image_size=S, channels=int(cfg.channels), num_timesteps=int(cfg.num_timesteps),
+                schedule=str(cfg.schedule), patch=int(cfg.patch))
+    live = {s: BuiltinPrior(s, **arch).to(dev) for s in spaces}
+    ema = {s: copy.deepcopy(m).requires_grad_(False) for s, m in live.items()}
+    params = [p for m in live.values() for p in m.parameters()]
+    opt = torch.optim.AdamW(params, lr=float(cfg.lr), weight_decay=0.0)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: min(1.0, (i + 1) / 100))
+    modules = {**live, **{f"{s}_ema": m for s, m in ema.items()}}
+    trainable = Trainable(modules, opt, extra={"sched": sched})
+    prompts = full_prompts(max(1, int(cfg.eval_prompts) // 3))
+
+    def step(i: int) -> Dict[str, torch.Tensor]:
+        images, labels = prompt_batch(int(cfg.batch_size), S, gen, dev)
+        logs, total = {}, 0.0
+        if "pixel" in live:
+            logs["pixel"] = live["pixel"].diffusion_loss(images, labels, gen, float(cfg.slot_drop), float(cfg.all_drop))
+            total = total + logs["pixel"]
+        if "latent" in live:
+            lat = live["latent"]
+            if i < ae_iters:
+                logs["ae"] = lat.autoencoder.loss(images)
+            else:
+                if i == ae_iters or float(lat.latent_scale) == 1.0:
+                    with torch.no_grad():
+                        ref, _ = prompt_batch(256, S, torch.Generator(dev).manual_seed(1234), dev)
+                        lat.latent_scale.fill_(1.0 / float(lat.autoencoder.encode(ref).std()))
+                logs["latent"] = lat.diffusion_loss(images, labels, gen, float(cfg.slot_drop), float(cfg.all_drop))
+            total = total + logs.get("ae", 0.0) + logs.get("latent", 0.0)
+        logs["loss"] = total
+        return logs
+
+    def after(i: int) -> None:
+        sched.step()
+        for s in spaces:
+            # the autoencoder is copied, not averaged: the latent U-Net must see the frozen one
+            _ema_update(ema[s], live[s], 0.0 if i < ae_iters + 10 and s == "latent" else float(cfg.ema_decay))
+
+    samples: Dict[str, torch.Tensor] = {}
+
+    def evaluate(_i: int) -> Dict[str, float]:
+        out = {}
+        g = torch.Generator(dev).manual_seed(int(cfg.seed) + 7)
+        for s in spaces:
+            if s == "latent" and _i <= ae_iters:
+                continue
+            samples[s] = ddim_sample(ema[s], prompts, int(cfg.sample_steps), float(cfg.eval_guidance), g)
+            out[f"sample_match_{s}"] = match_rate(samples[s], prompts)
+        return out
+
+    with ctx.stopwatch.stage("train"):
+        result = train(ctx, trainable, step, int(cfg.iters), evaluate, int(cfg.eval_every),
+                       int(cfg.checkpoint_every), bool(cfg.resume), desc="train_prior", after_step=after)
+    for s, imgs in samples.items():
+        grid = image_grid(imgs, cols=max(1, int(cfg.eval_prompts) // 3))
+        save_png(ctx.path(f"samples_{s}.png"), grid)
+        ctx.logger.image(f"samples/{s}", grid, result.step)
+    meta = {"command": f"python main.py task=train_prior seed={cfg.seed} iters={cfg.iters} space={cfg.space}",
+            "seed": int(cfg.seed), "iters": result.step, "batch_size": int(cfg.batch_size)}
+    state = export_state({s: ema[s].cpu() for s in spaces}, meta)
+    out_path = ctx.path("builtin_prior.pt")
+    with atomic_path(out_path) as tmp:
+        torch.save(state, tmp)
+    if cfg.get("export"):
+        target = resolve_path(str(cfg.export))
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(out_path, target)
+    metrics = {k: round(float(v), 4) for k, v in result.metrics.items() if k != "seconds"}
+    metrics.update({
+        "iters": result.step,
+        "n_params": sum(p.numel() for m in live.values() for p in m.parameters()),
+        "checkpoint_bytes": out_path.stat().st_size,
+        "train_seconds": round(ctx.stopwatch.stages["train"], 3),
+        "skipped_steps": result.skipped_steps,
+        "interrupted": result.interrupted,
+    })
+    return metrics
