@@ -1,7 +1,7 @@
 """Benchmark: Gaussian rasteriser forward+backward on one truck view, and gs_train under
 time budgets. Run by hand, never in tests:
 
-    python bench/bench_gaussians.py [--threads 2] [--repeats 20] [--tile 8] [--chunk 32]
+    python bench/bench_gaussians.py [--threads 2] [--repeats 20] [--tile 4]
                                     [--train-budgets 60 180 600]   # (omit to skip training)
 
 Part 1: 10k Gaussians initialised from points_10000.npy (isotropic scales = mean distance
@@ -47,7 +47,7 @@ def bench_raster(args) -> dict:
     n_pairs = 0
     for i in range(args.repeats + 2):
         t0 = time.perf_counter()
-        out = rasterize_gaussians(*params, 3, cam, data.background, tile_size=args.tile, chunk=args.chunk)
+        out = rasterize_gaussians(*params, 3, cam, data.background, tile_size=args.tile)
         loss = (out["color"][0] - target).abs().mean()
         loss.backward()
         dt = time.perf_counter() - t0
@@ -59,7 +59,7 @@ def bench_raster(args) -> dict:
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     res = {"fwd_bwd_median_s": statistics.median(times), "fwd_bwd_min_s": min(times),
            "peak_rss_mb": rss / 1024, "rss_growth_mb": (rss - rss0) / 1024, "n_pairs": n_pairs,
-           "threads": torch.get_num_threads(), "tile": args.tile, "chunk": args.chunk}
+           "threads": torch.get_num_threads(), "tile": args.tile}
     return res
 
 
@@ -80,8 +80,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=20)
-    ap.add_argument("--tile", type=int, default=8)
-    ap.add_argument("--chunk", type=int, default=32)
+    ap.add_argument("--tile", type=int, default=4)
     ap.add_argument("--train-budgets", type=float, nargs="*", default=[])
     args = ap.parse_args()
     torch.set_num_threads(args.threads)

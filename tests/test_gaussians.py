@@ -98,11 +98,11 @@ def _render(params, deg, cams, bg, **kw):
     return rasterize_gaussians(*params[:4], params[4], deg, cams, bg, **kw)
 
 
-@pytest.mark.parametrize("tile,chunk,max_el", [(8, 32, 1 << 22), (16, 4, 1 << 22), (4, 3, 200)])
-def test_matches_dense_reference_values(tile, chunk, max_el):
+@pytest.mark.parametrize("tile,max_el", [(8, 1 << 22), (16, 1 << 22), (4, 200)])
+def test_matches_dense_reference_values(tile, max_el):
     params, cams = _scene(60, seed=1), _cams()
     bg = torch.tensor([0.2, 0.5, 0.9], dtype=DT)
-    out = _render(params, 3, cams, bg, tile_size=tile, chunk=chunk, max_elements=max_el)
+    out = _render(params, 3, cams, bg, tile_size=tile, max_elements=max_el)
     ref = reference(*params, 3, cams, bg)
     assert out["color"].shape == (2, 29, 37, 3)
     assert float(ref["alpha"].max()) > 0.5                         # the scene covers the image
@@ -118,7 +118,7 @@ def test_gradients_match_reference_autograd(deg):
     wc = torch.rand(2, 29, 37, 3, generator=g, dtype=DT)
     wa = torch.rand(2, 29, 37, generator=g, dtype=DT)
     grads = []
-    for fn in (lambda p: _render(p, deg, cams, bg, chunk=5), lambda p: reference(*p, deg, cams, bg)):
+    for fn in (lambda p: _render(p, deg, cams, bg, tile_size=4), lambda p: reference(*p, deg, cams, bg)):
         p = [x.clone().requires_grad_(True) for x in params]
         o = fn(p)
         ((o["color"] * wc).sum() + (o["alpha"] * wa).sum() + 0.1 * o["depth"].sum()).backward()

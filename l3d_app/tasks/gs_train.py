@@ -68,7 +68,7 @@ def gs_train(cfg, ctx) -> dict:
     bg = data.background
     tr = data.train.to(ctx.device)
     H, W = data.image_size
-    kw = dict(tile_size=int(cfg.tile_size), chunk=int(cfg.chunk))
+    kw = dict(tile_size=int(cfg.tile_size))
     iters, budget = int(cfg.iters), float(cfg.get("time_budget", 0) or 0)
     stats = {"train_seconds": 0.0, "out": None, "steps": 0}
     lam = float(cfg.ssim_lambda)

@@ -1,0 +1,101 @@
+"""The hand-written compositing backward: gradcheck (float64) and plain autograd of the same forward."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from l3d_app.render.gaussians_composite import (ALPHA_MAX, CompositeFunction, bin_tiles, composite_pairs,
+                                                splat_pixel_pairs)
+
+DT = torch.float64
+W, H = 11, 7
+
+
+def _splats(n, seed, opaque=False, stacked=False):
+    g = torch.Generator().manual_seed(seed)
+    mean2d = torch.rand(n, 2, generator=g, dtype=DT) * torch.tensor([W, H], dtype=DT)
+    if stacked:                                    # all on one spot: early termination
+        mean2d = torch.tensor([W / 2, H / 2], dtype=DT) + 0.3 * torch.randn(n, 2, generator=g, dtype=DT)
+    sx, sy = 0.8 + 2.5 * torch.rand(n, generator=g, dtype=DT), 0.8 + 2.5 * torch.rand(n, generator=g, dtype=DT)
+    rho = 0.8 * (torch.rand(n, generator=g, dtype=DT) * 2 - 1)
+    det = (sx * sy) ** 2 * (1 - rho ** 2)
+    conic = torch.stack([sy ** 2, -rho * sx * sy, sx ** 2], -1) / det[:, None]
+    opacity = 0.2 + 0.75 * torch.rand(n, generator=g, dtype=DT)
+    if opaque:
+        opacity[: n // 2] = 0.999999                  # alpha clamped to 0.99 near their centres
+    if stacked:
+        opacity = 0.9 + 0.08 * torch.rand(n, generator=g, dtype=DT)
+    feats = torch.rand(n, 4, generator=g, dtype=DT)
+    depth = torch.rand(n, generator=g, dtype=DT)
+    return mean2d, conic, opacity, feats, depth
+
+
+def _pairs(mean2d, conic, opacity, depth, tile=4):
+    ext = torch.full((mean2d.shape[0], 2), 12.0, dtype=DT)
+    sid, ts, tc = bin_tiles(mean2d, ext, depth, W, H, tile)
+    return splat_pixel_pairs(sid, ts, tc, mean2d, conic, opacity, W, H, tile)
+
+
+@pytest.mark.parametrize("case", ["random", "opaque", "stacked"])
+def test_gradcheck_custom_backward(case):
+    n = 10 if case == "stacked" else 6
+    mean2d, conic, opacity, feats, depth = _splats(n, seed=1, opaque=case == "opaque", stacked=case == "stacked")
+    pix, spl = _pairs(mean2d, conic, opacity, depth)
+    assert pix.numel() > 20
+    inputs = [x.clone().requires_grad_(True) for x in (mean2d, conic, opacity, feats)]
+
+    def fn(m, c, o, f):
+        return CompositeFunction.apply(pix, spl, m, c, o, f, W, H)
+
+    with torch.no_grad():
+        acc, alpha = fn(*inputs)
+    if case == "stacked":                          # some pixels terminated early
+        assert float(alpha.max()) > 1 - 2e-4
+    if case == "opaque":
+        assert float(alpha.max()) >= ALPHA_MAX - 1e-12
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-7, rtol=1e-5)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_custom_backward_matches_autograd_of_the_same_forward(seed):
+    mean2d, conic, opacity, feats, depth = _splats(40, seed=seed, opaque=seed == 3)
+    pix, spl = _pairs(mean2d, conic, opacity, depth)
+    g = torch.Generator().manual_seed(seed + 10)
+    wa, wb = torch.rand(W * H, 4, generator=g, dtype=DT), torch.rand(W * H, generator=g, dtype=DT)
+    results = []
+    for fn in (CompositeFunction.apply, composite_pairs):
+        x = [t.clone().requires_grad_(True) for t in (mean2d, conic, opacity, feats)]
+        acc, alpha = fn(pix, spl, *x, W, H)
+        ((acc * wa).sum() + (alpha * wb).sum()).backward()
+        results.append((acc.detach(), alpha.detach(), [t.grad for t in x]))
+    (a1, b1, g1), (a2, b2, g2) = results
+    torch.testing.assert_close(a1, a2, atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(b1, b2, atol=1e-12, rtol=1e-10)
+    for name, u, v in zip(("mean2d", "conic", "opacity", "feats"), g1, g2):
+        assert torch.isfinite(u).all(), name
+        torch.testing.assert_close(u, v, atol=1e-10, rtol=1e-8, msg=name)
+
+
+def test_pairs_are_exactly_the_visible_contributions():
+    """Every (pixel, splat) with alpha >= 1/255 appears once; each pixel's pairs are one run, by depth."""
+    mean2d, conic, opacity, feats, depth = _splats(30, seed=5)
+    pix, spl = _pairs(mean2d, conic, opacity, depth)
+    v, u = torch.meshgrid(torch.arange(H, dtype=DT) + 0.5, torch.arange(W, dtype=DT) + 0.5, indexing="ij")
+    d = torch.stack([u.reshape(-1), v.reshape(-1)], -1)[:, None, :] - mean2d[None]       # (HW, N, 2)
+    power = -0.5 * (conic[:, 0] * d[..., 0] ** 2 + 2 * conic[:, 1] * d[..., 0] * d[..., 1] + conic[:, 2] * d[..., 1] ** 2)
+    expect = set(map(tuple, torch.nonzero(opacity * torch.exp(power) >= 1 / 255).tolist()))
+    assert set(zip(pix.tolist(), spl.tolist())) == expect and len(expect) == pix.numel()
+    same = pix[1:] == pix[:-1]
+    assert int((~same).sum()) + 1 == torch.unique(pix).numel()              # one contiguous run per pixel
+    assert bool((depth[spl][1:] > depth[spl][:-1])[same].all())
+
+
+def test_no_pairs():
+    z = torch.zeros(0, dtype=torch.long)
+    m = torch.zeros(3, 2, dtype=DT, requires_grad=True)
+    acc, alpha = CompositeFunction.apply(z, z, m, torch.ones(3, 3, dtype=DT), torch.ones(3, dtype=DT),
+                                         torch.ones(3, 4, dtype=DT), W, H)
+    assert float(acc.detach().abs().sum()) == 0.0 and float(alpha.detach().abs().sum()) == 0.0
+    (acc.sum() + alpha.sum()).backward()
+    assert float(m.grad.abs().sum()) == 0.0
