@@ -50,6 +50,7 @@ MODULES = (
     "l3d_app.models.svr_pseudo",
     "l3d_app.diffusion.builtin_prior",
     "l3d_app.tasks.train_prior",
+    "l3d_app.tasks.sds_image",
     "l3d_app.diffusion.stable_diffusion",
 )
 

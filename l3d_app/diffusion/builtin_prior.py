@@ -57,16 +57,18 @@ class BuiltinPrior(DiffusionPrior):
 
     def __init__(self, space: str = "pixel", image_size: int = 32, channels: int = 32,
                  latent_channels: int = 4, slot_dim: int = 16, num_timesteps: int = 1000,
-                 schedule: str = "cosine", patch: int = 2):
+                 schedule: str = "cosine", patch: int = 2, prediction: str = "v"):
         super().__init__()
         if space not in SPACES:
             raise UserError(f"unknown prior space '{space}' (known: {', '.join(SPACES)})")
+        if prediction not in ("eps", "v"):
+            raise UserError(f"prediction must be 'eps' or 'v', got '{prediction}'")
         if int(image_size) % 16:
             raise UserError(f"the built-in prior needs image_size divisible by 16, got {image_size}")
         self.config = dict(space=space, image_size=int(image_size), channels=int(channels),
                            latent_channels=int(latent_channels), slot_dim=int(slot_dim),
                            num_timesteps=int(num_timesteps), schedule=schedule,
-                           patch=int(patch))
+                           patch=int(patch), prediction=prediction)
         self.is_latent = space == "latent"
         self.image_size = int(image_size)
         self.slots = SlotEmbedding(slot_dim)
@@ -88,8 +90,16 @@ class BuiltinPrior(DiffusionPrior):
         uncond = torch.full((1, 3), ANY, device=device)
         return PromptEmbedding(cond=self.embed_labels(cond), uncond=self.embed_labels(uncond))
 
+    def _abar(self, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        return self.alphas_cumprod[t].view(-1, *([1] * (like.dim() - 1))).to(like.dtype)
+
     def predict_noise(self, x_t: torch.Tensor, t: torch.Tensor, condition: torch.Tensor) -> torch.Tensor:
-        return self.unet(x_t, t, condition)
+        """eps from the U-Net's output; with v-prediction eps = sqrt(1 - abar) x_t + sqrt(abar) v."""
+        out = self.unet(x_t, t, condition)
+        if self.config["prediction"] == "eps":
+            return out
+        abar = self._abar(t, x_t)
+        return (1 - abar).sqrt() * x_t + abar.sqrt() * out
 
     def encode(self, images: torch.Tensor) -> torch.Tensor:
         if self.autoencoder is None:
@@ -103,7 +113,11 @@ class BuiltinPrior(DiffusionPrior):
 
     def diffusion_loss(self, images: torch.Tensor, labels: torch.Tensor, generator: torch.Generator,
                        slot_drop: float = 0.2, all_drop: float = 0.1) -> torch.Tensor:
-        """DDPM epsilon-MSE on clean images (B, 3, S, S) with CFG dropout of label slots."""
+        """DDPM MSE on clean images (B, 3, S, S) with CFG dropout of label slots.
+
+        The target is the noise (``prediction="eps"``) or v = sqrt(abar) eps - sqrt(1 - abar) x0
+        (``"v"``, which weights the clean-image error by SNR + 1 and learns faster here).
+        """
         B = images.shape[0]
         dev = images.device
         with torch.no_grad():
@@ -113,8 +127,13 @@ class BuiltinPrior(DiffusionPrior):
         labels = torch.where(drop, torch.full_like(labels, ANY), labels)
         t = torch.randint(0, self.num_timesteps, (B,), generator=generator, device=dev)
         noise = torch.randn(x0.shape, generator=generator, device=dev)
-        pred = self.predict_noise(self.add_noise(x0, t, noise), t, self.embed_labels(labels))
-        return ((pred - noise) ** 2).mean()
+        out = self.unet(self.add_noise(x0, t, noise), t, self.embed_labels(labels))
+        if self.config["prediction"] == "eps":
+            target = noise
+        else:
+            abar = self._abar(t, x0)
+            target = abar.sqrt() * noise - (1 - abar).sqrt() * x0
+        return ((out - target) ** 2).mean()
 
 
 def export_state(priors: Dict[str, BuiltinPrior], meta: Dict[str, Any]) -> Dict[str, Any]:

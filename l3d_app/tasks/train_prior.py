@@ -65,7 +65,7 @@ def train_prior(cfg, ctx) -> dict:
     if ae_iters >= int(cfg.iters):
         raise UserError(f"ae_iters ({ae_iters}) must be smaller than iters ({cfg.iters})")
     arch = dict(image_size=S, channels=int(cfg.channels), num_timesteps=int(cfg.num_timesteps),
-                schedule=str(cfg.schedule), patch=int(cfg.patch))
+                schedule=str(cfg.schedule), patch=int(cfg.patch), prediction=str(cfg.prediction))
     live = {s: BuiltinPrior(s, **arch).to(dev) for s in spaces}
     ema = {s: copy.deepcopy(m).requires_grad_(False) for s, m in live.items()}
     params = [p for m in live.values() for p in m.parameters()]

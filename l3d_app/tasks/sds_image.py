@@ -1,0 +1,116 @@
+"""sds_image: optimise one image (pixel space) or latent (latent space) from a prompt by SDS.
+
+The variable ``x`` (1, *latent_shape) lives in the prior's model space: pixels in [-1, 1]
+(``space=pixel``, clamped to that range after each step) or latents (``space=latent``,
+decoded by the prior's decoder). It starts at the encoding of a flat grey image plus
+``init_noise`` Gaussian noise. Each step averages the SDS gradient
+(:func:`l3d_app.losses.sds.sds_loss`: t in [t_min, t_max], w(t) = 1 - abar_t, CFG scale
+``guidance_scale``) over ``batch`` draws of (t, noise) and takes an Adam step; a
+non-finite gradient is never applied (the shared loop skips the step and counts it).
+
+Outputs: ``final.png`` (native size and ``final_x8.png`` enlarged), ``progress.gif``
+(decoded image every ``frame_every`` steps), TensorBoard images ``sds/image`` over the
+iterations, and ``metrics.json``: the independent checker's verdict
+(:mod:`l3d_app.metrics.prompt_match`; ``match`` 1/0 and what it saw), ``seconds``,
+``iters``, ``skipped_steps``. The checker only judges prompts in the built-in vocabulary
+that name a shape; for other prompts (e.g. with ``prior=stable_diffusion``) ``match`` is
+left out.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, List
+
+import torch
+import torch.nn.functional as F
+
+from l3d_app.data.prompt_images import ANY, parse_prompt
+from l3d_app.diffusion.registry import PRIORS
+from l3d_app.errors import UserError
+from l3d_app.losses.sds import SDSLoss
+from l3d_app.metrics.prompt_match import check_image
+from l3d_app.registry import TASKS
+from l3d_app.runtime.media import save_gif, save_png
+from l3d_app.runtime.training import Trainable, train
+from l3d_app.tasks.common import require_positive
+
+
+def _in_vocabulary(prompt: str) -> bool:
+    """Whether the checker can judge ``prompt`` (it names a shape in the built-in vocabulary)."""
+    try:
+        return parse_prompt(prompt)[1] != ANY
+    except UserError:
+        return False
+
+
+def _hwc(images: torch.Tensor) -> torch.Tensor:
+    """(1, 3, H, W) -> (H, W, 3) on the CPU."""
+    return images[0].detach().permute(1, 2, 0).float().cpu()
+
+
+@TASKS.register("sds_image")
+def sds_image(cfg, ctx) -> dict:
+    """Optimise, log the image over iterations, check the result; return the metrics."""
+    require_positive(cfg, "iters", "lr", "batch", "frame_every")
+    if not str(cfg.prompt).strip():
+        raise UserError("prompt must not be empty, e.g. prompt='a red circle'")
+    prior = PRIORS.build(cfg.prior, device=ctx.device)
+    if str(cfg.space) != ("latent" if prior.is_latent else "pixel"):
+        raise UserError(f"space={cfg.space} but the prior works in "
+                        f"{'latent' if prior.is_latent else 'pixel'} space")
+    emb = prior.embed_prompt(str(cfg.prompt))
+    S = int(prior.image_size)
+    with torch.no_grad():
+        grey = torch.full((1, 3, S, S), 0.5, device=ctx.device)
+        x0 = prior.encode(grey).float()
+        x0 = x0 + float(cfg.init_noise) * torch.randn(x0.shape, generator=ctx.generator,
+                                                      device=ctx.generator.device).to(x0.device)
+    holder = torch.nn.ParameterDict({"x": torch.nn.Parameter(x0)})
+    trainable = Trainable({"image": holder}, torch.optim.Adam(holder.parameters(), lr=float(cfg.lr)))
+    sds = SDSLoss(float(cfg.guidance_scale), float(cfg.t_min), float(cfg.t_max), str(cfg.weighting),
+                  on_nonfinite="flag")
+    B = int(cfg.batch)
+    last: Dict[str, float] = {}
+    frames: List[torch.Tensor] = []
+
+    def decode() -> torch.Tensor:
+        with torch.no_grad():
+            return prior.decode(holder["x"].detach()).float().clamp(0, 1)
+
+    def step(i: int) -> Dict[str, torch.Tensor]:
+        x = holder["x"].expand(B, *holder["x"].shape[1:])
+        out = sds(prior, x, emb, ctx.generator)
+        last.update(grad_norm=out.grad_norm, t=float(out.t.float().mean()))
+        return {"loss": out.loss / B, "grad_norm": torch.tensor(out.grad_norm),
+                "t": out.t.float().mean()}
+
+    def after(i: int) -> None:
+        if not prior.is_latent:
+            with torch.no_grad():
+                holder["x"].clamp_(-1, 1)
+        if i % int(cfg.frame_every) == 0 or i == int(cfg.iters) - 1:
+            img = decode()
+            frames.append(_hwc(img))
+            ctx.logger.image("sds/image", _hwc(img), i)
+
+    with ctx.stopwatch.stage("optimise"):
+        result = train(ctx, trainable, step, int(cfg.iters), checkpoint_every=int(cfg.checkpoint_every),
+                       resume=bool(cfg.resume), desc="sds_image", after_step=after)
+    final = decode()
+    save_png(ctx.path("final.png"), _hwc(final))
+    big = F.interpolate(final, scale_factor=8, mode="nearest")
+    save_png(ctx.path("final_x8.png"), _hwc(big))
+    if frames:
+        big_frames = F.interpolate(torch.stack(frames).permute(0, 3, 1, 2), scale_factor=4, mode="nearest")
+        save_gif(ctx.path("progress.gif"), big_frames.permute(0, 2, 3, 1), fps=float(cfg.fps))
+    metrics = {"prompt": str(cfg.prompt), "guidance_scale": float(cfg.guidance_scale), "space": str(cfg.space),
+               "iters": result.step, "skipped_steps": result.skipped_steps,
+               "final_grad_norm": round(float(last.get("grad_norm", float("nan"))), 5),
+               "optimise_seconds": round(ctx.stopwatch.stages["optimise"], 3)}
+    if _in_vocabulary(str(cfg.prompt)):
+        verdict = check_image(_hwc(final), str(cfg.prompt))
+        ctx.logger.text("sds/verdict", str(verdict.as_dict()))
+        metrics.update({"match": int(verdict.match), "seen_colour": verdict.colour, "seen_shape": verdict.shape,
+                        "seen_background": verdict.background, "fill_ratio": verdict.fill_ratio,
+                        "area_fraction": verdict.area_fraction})
+    return metrics
