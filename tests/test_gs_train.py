@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import json
 
+import pytest
 import torch
 
-from l3d_app.app import run_task
+from l3d_app.app import RunInterrupted, run_task
 from l3d_app.geometry.gaussian_ply import load_gaussian_ply, save_gaussian_ply
 from l3d_app.models.gaussians import DensityControl, PARAM_NAMES, init_from_points
 
@@ -74,3 +75,41 @@ def test_gs_render_turntable_of_a_ply(compose, tmp_path):
     run_task(cfg, out_dir=tmp_path / "run")
     assert (tmp_path / "run" / "turntable.gif").is_file()
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["n_gaussians"] == 200
+
+
+def test_gs_train_resume_is_bitwise_identical(compose, tmp_path, monkeypatch):
+    """N steps in one go == N/2 steps, interrupted, then resumed (density accumulators included)."""
+    torch.set_num_threads(1)
+    args = ("task=gs_train", "iters=60", "eval_every=30", "data.image_size=24", "data.n_train=8", "data.n_test=1",
+            "n_init=600", "densify.start=10", "densify.every=10", "densify.opacity_reset_every=40", "sh_every=20",
+            "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
+    run_task(compose(*args), out_dir=tmp_path / "full")
+    monkeypatch.setenv("L3D_STOP_AT_STEP", "25")          # mid-way between two densifications
+    with pytest.raises(RunInterrupted):
+        run_task(compose(*args), out_dir=tmp_path / "cut")
+    monkeypatch.delenv("L3D_STOP_AT_STEP")
+    run_task(compose(*args, "resume=true"), out_dir=tmp_path / "cut")
+    full, cut = (torch.load(tmp_path / d / "checkpoint.pt", weights_only=False) for d in ("full", "cut"))
+    assert full["step"] == cut["step"] == 60
+    a, b = full["trainable"]["modules"]["gaussians"], cut["trainable"]["modules"]["gaussians"]
+    assert a["means"].shape[0] != 600                    # densification did change the count
+    for name in PARAM_NAMES:
+        assert torch.equal(a[name], b[name]), name
+    for k in ("grad_accum", "count", "max_radii"):
+        assert torch.equal(full["trainable"]["extra"]["density"][k], cut["trainable"]["extra"]["density"][k]), k
+
+
+def test_colors_from_views_median_of_the_pixels_seen():
+    from l3d_app.geometry.cameras import Cameras
+    from l3d_app.models.gaussians import colors_from_views
+
+    R = torch.eye(3).expand(3, 3, 3).contiguous()
+    cams = Cameras(R, torch.tensor([[0.0, 0, 2]] * 3), 10.0, 10.0, 4.0, 4.0, 8, 8)
+    imgs = torch.zeros(3, 8, 8, 3)
+    imgs[0, 4, 4] = torch.tensor([1.0, 0.0, 0.0])          # the centre pixel: red, red, blue
+    imgs[1, 4, 4] = torch.tensor([1.0, 0.0, 0.0])
+    imgs[2, 4, 4] = torch.tensor([0.0, 0.0, 1.0])
+    pts = torch.tensor([[0.05, 0.05, 0.0], [0.0, 0.0, -5.0], [100.0, 0.0, 0.0]])  # seen, behind, off frame
+    c = colors_from_views(pts, imgs, cams)
+    torch.testing.assert_close(c[0], torch.tensor([1.0, 0.0, 0.0]))
+    torch.testing.assert_close(c[1:], torch.full((2, 3), 0.5))

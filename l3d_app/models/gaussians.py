@@ -75,6 +75,27 @@ def init_from_points(points: torch.Tensor, colors: Optional[torch.Tensor] = None
                          rgb_to_sh(rgb)[:, None, :], torch.zeros(n, 15, 3))
 
 
+@torch.no_grad()
+def colors_from_views(points: torch.Tensor, images: torch.Tensor, cams) -> torch.Tensor:
+    """(N, 3) initial colour of each point: the median, over the views that see it in
+    frame (in front of the camera), of the pixel it projects to. Occlusion is ignored; the
+    median keeps the colour of the surface seen by most views. Points seen by no view: 0.5.
+
+    points (N, 3) world; images (V, H, W, 3) in [0, 1]; cams: V cameras of that size.
+    """
+    V, H, W = images.shape[:3]
+    out = torch.full((points.shape[0], 3), float("nan"), dtype=images.dtype, device=images.device)
+    pix, z = cams.project(points.to(cams.R.dtype))                               # (V, N, 2), (V, N)
+    col, row = pix[..., 0].floor().long(), pix[..., 1].floor().long()
+    ok = (z > 0) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
+    flat = images.reshape(V, H * W, 3)
+    idx = (row.clamp(0, H - 1) * W + col.clamp(0, W - 1))                        # (V, N)
+    rgb = torch.gather(flat, 1, idx[..., None].expand(-1, -1, 3))                 # (V, N, 3)
+    rgb = torch.where(ok[..., None], rgb, out[None])
+    out = torch.nanmedian(rgb, dim=0).values
+    return torch.nan_to_num(out, nan=0.5)
+
+
 class DensityControl:
     """3DGS adaptive density control (clone / split / prune / opacity reset / cap).
 
@@ -99,6 +120,15 @@ class DensityControl:
         self.max_world_scale = float(max_world_scale)
         self.max_gaussians = int(max_gaussians)
         self.grad_accum = self.count = self.max_radii = None
+
+    def state_dict(self) -> Dict[str, Optional[torch.Tensor]]:
+        """The accumulators (checkpointed so that a resumed run densifies identically)."""
+        return {"grad_accum": self.grad_accum, "count": self.count, "max_radii": self.max_radii}
+
+    def load_state_dict(self, state: Dict[str, Optional[torch.Tensor]]) -> None:
+        for k in ("grad_accum", "count", "max_radii"):
+            v = state.get(k)
+            setattr(self, k, None if v is None else v.clone())
 
     def reset_stats(self, n: int, device) -> None:
         self.grad_accum = torch.zeros(n, device=device)

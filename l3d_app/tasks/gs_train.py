@@ -25,7 +25,7 @@ import torch
 
 from l3d_app.geometry.gaussian_ply import save_gaussian_ply
 from l3d_app.metrics.image import psnr, ssim
-from l3d_app.models.gaussians import DensityControl, init_from_points
+from l3d_app.models.gaussians import DensityControl, colors_from_views, init_from_points
 from l3d_app.registry import DATASETS, TASKS
 from l3d_app.render.gaussians import rasterize_gaussians
 from l3d_app.runtime.media import save_gif
@@ -49,7 +49,10 @@ def gs_train(cfg, ctx) -> dict:
     """Train Gaussians, evaluate PSNR/SSIM on the test views, write gifs / ply / metrics."""
     require_positive(cfg, "iters", "eval_every")
     data = DATASETS.build(cfg.data).to(ctx.device)
-    model = init_from_points(_initial_points(cfg, data, ctx.generator), None, opacity=float(cfg.init_opacity)).to(ctx.device)
+    points = _initial_points(cfg, data, ctx.generator).to(ctx.device)
+    colors = colors_from_views(points, data.images[data.train], data.cameras[data.train]) \
+        if str(cfg.init_colors) == "views" else None
+    model = init_from_points(points, colors, opacity=float(cfg.init_opacity)).to(ctx.device)
     centres = data.cameras.centers()
     extent = 1.1 * float((centres - centres.mean(0)).norm(dim=-1).max())
     lr = cfg.lr
@@ -60,11 +63,11 @@ def gs_train(cfg, ctx) -> dict:
               {"params": [model.sh_dc], "lr": float(lr.sh_dc), "name": "sh_dc"},
               {"params": [model.sh_rest], "lr": float(lr.sh_dc) / 20.0, "name": "sh_rest"}]
     opt = torch.optim.Adam(groups, eps=1e-15)
-    trainable = Trainable({"gaussians": model}, opt)
     dc = DensityControl(extent, grad_threshold=float(cfg.densify.grad_threshold),
                         percent_dense=float(cfg.densify.percent_dense), min_opacity=float(cfg.densify.min_opacity),
                         max_screen_size=float(cfg.densify.max_screen_size),
                         max_world_scale=float(cfg.densify.max_world_scale), max_gaussians=int(cfg.densify.max_gaussians))
+    trainable = Trainable({"gaussians": model}, opt, extra={"density": dc})  # accumulators resume too
     bg = data.background
     tr = data.train.to(ctx.device)
     H, W = data.image_size
