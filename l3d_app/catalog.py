@@ -52,6 +52,8 @@ MODULES = (
     "l3d_app.tasks.train_prior",
     "l3d_app.tasks.sds_image",
     "l3d_app.diffusion.stable_diffusion",
+    "l3d_app.tasks.sds_mesh",
+    "l3d_app.tasks.sds_nerf",
 )
 
 

@@ -167,3 +167,23 @@ def test_missing_diffusers_is_a_user_error(monkeypatch, pipeline_dir):
     monkeypatch.setattr(builtins, "__import__", fake_import)
     with pytest.raises(UserError, match="diffusers"):
         stable_diffusion_prior(str(pipeline_dir))
+
+
+def test_sds_nerf_runs_on_the_tiny_pipeline_with_view_prompts_and_latent_steps(pipeline_dir, compose, tmp_path):
+    from l3d_app.app import run_task
+
+    cfg = compose("task=sds_nerf", "prior=stable_diffusion", f"prior.path={pipeline_dir}", "iters=2",
+                  "latent_iter_ratio=0.5", "eval_every=2", "eval_views=1", "num_frames=2", "n_samples=8",
+                  "render_size=8", "guidance_scale=100", "tensorboard=false", "threads=1", "device=cpu")
+    run_task(cfg, out_dir=tmp_path)
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["iters"] == 2 and m["latent_iters"] == 1 and m["skipped_steps"] == 0
+    assert m["view_prompts"]["back"] == "a red circle on white, back view"     # on for Stable Diffusion
+    assert (tmp_path / "sds_nerf.gif").exists()
+
+
+def test_missing_path_is_reported_before_loading(compose):
+    from l3d_app.app import run_task
+
+    with pytest.raises(UserError, match="prior.path"):
+        run_task(compose("task=sds_mesh", "prior=stable_diffusion"), out_dir=None)

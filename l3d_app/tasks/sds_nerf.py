@@ -1,0 +1,325 @@
+"""sds_nerf: text-to-3D in the DreamFusion manner, at low resolution.
+
+Model: the fast radiance field of ``train_nerf`` (``model=grid_field``: multi-resolution grid
++ small MLP) over the box [-1, 1]^3, its density multiplied by a Gaussian *blob*
+``exp(blob_density * exp(-|x|^2 / (2 blob_radius^2)))`` (for the exp activation this adds the
+blob to the raw density, as DreamFusion does), so optimisation starts from a soft ball.
+
+Each step renders ``batch_views`` random orbit cameras (volume rendering along ray-box
+segments, stratified samples, :func:`~l3d_app.render.radiance.render_field_rays`) with a
+shading drawn at random (``shading_probs``):
+
+* ``albedo``: the field's colour;
+* ``lambertian``: ``albedo * (ambient + (1 - ambient) max(0, n . l))``;
+* ``textureless``: the same with a white albedo (geometry only);
+* ``normal``: ``(n + 1) / 2``;
+
+with ``n = -grad sigma / |grad sigma|`` (autograd, differentiable) and a light ``l`` near
+the camera (the direction to the camera plus a random offset of size ``light_jitter``).
+
+Guidance: SDS (:func:`~l3d_app.losses.sds.sds_loss`) under the prompt embedding of each
+view (:class:`~l3d_app.diffusion.view_prompts.ViewPrompts`: front / side / back blended by
+azimuth, overhead / bottom by elevation; on by default for Stable Diffusion, off for the
+built-in prior, whose vocabulary has no view words and whose shapes are flat).
+Regularisers (:mod:`l3d_app.losses.nerf_regularizers`): ``lambda_entropy`` x the mean
+binary entropy of the ray opacities and ``lambda_orient`` x the mean over rays of
+``sum_i w_i max(0, n_i . d)^2`` (Ref-NeRF orientation), applied on the steps that compute
+normals (every shading but ``albedo``, which skips the normals' double backward: about half
+the cost of a step). An :class:`~l3d_app.render.occupancy.OccupancyGrid` (``occupancy.*``,
+started from the blob's extent) skips samples in empty cells.
+
+Latent iterations (``latent_iter_ratio``): with a latent prior (Stable Diffusion, or the
+built-in prior with ``space=latent``), the first ``latent_iter_ratio * iters`` steps skip the
+encoder: the field is rendered directly at the latent resolution as 4 channels, the
+composited normals (3, in [-1, 1]) and ``2 * opacity - 1``, and that image is used as the
+latent (Latent-NeRF / Fantasia3D's geometry warm-up; needs a 4-channel latent space). With
+a pixel-space prior there is no latent space and no encoder to skip: the knob has no effect
+(every step renders RGB at the prior's resolution) and ``latent_iters`` is 0.
+
+Outputs: ``sds_nerf.gif`` (turntable: albedo colour | textureless | depth, white = near),
+``metrics.json`` (match rate of the albedo turntable by the prompt checker, opacity,
+entropy, orientation, seconds, seconds per iteration), TensorBoard scalars and the front
+view over iterations.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, Dict, Optional
+
+import torch
+import torch.nn.functional as F
+
+from l3d_app.diffusion.view_prompts import VIEWS, ViewPrompts, sample_orbit_cameras
+from l3d_app.errors import UserError
+from l3d_app.geometry.camera_paths import turntable
+from l3d_app.geometry.cameras import Cameras
+from l3d_app.geometry.rays import camera_rays
+from l3d_app.losses.nerf_regularizers import density_normals, opacity_entropy, orientation_penalty
+from l3d_app.losses.sds import rgb_to_model_space, sds_loss
+from l3d_app.registry import MODELS, TASKS
+from l3d_app.render.occupancy import OccupancyGrid
+from l3d_app.render.radiance import render_field_rays
+from l3d_app.render.volume import render_rays_chunked
+from l3d_app.runtime.media import save_gif, save_png
+from l3d_app.runtime.training import Trainable, train
+from l3d_app.tasks.common import require_positive
+from l3d_app.tasks.sds_mesh import load_prior, score_frames, score_metrics
+
+SHADINGS = ("albedo", "lambertian", "textureless", "normal")
+SCENE_BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+# channels of the shaded field's output: colour (3) | orientation penalty (1) | normal (3)
+N_CHANNELS = 7
+
+
+class BlobField(torch.nn.Module):
+    """``field`` with its density multiplied by ``exp(blob_density * exp(-|x|^2 / (2 r^2)))``.
+
+    ``forward(points (N, 3), dirs (N, 3)) -> (sigma (N,), rgb (N, 3))`` like the wrapped field.
+    """
+
+    def __init__(self, field: torch.nn.Module, blob_density: float = 5.0, blob_radius: float = 0.5):
+        super().__init__()
+        if blob_radius <= 0:
+            raise UserError(f"blob_radius must be > 0, got {blob_radius}")
+        self.field, self.blob_density, self.blob_radius = field, float(blob_density), float(blob_radius)
+
+    def blob(self, points: torch.Tensor) -> torch.Tensor:
+        return self.blob_density * torch.exp(-(points * points).sum(-1) / (2 * self.blob_radius ** 2))
+
+    def density(self, points: torch.Tensor) -> torch.Tensor:
+        return self.field.density(points) * torch.exp(self.blob(points))
+
+    def forward(self, points: torch.Tensor, dirs: torch.Tensor):
+        sigma, rgb = self.field(points, dirs)
+        return sigma * torch.exp(self.blob(points)), rgb
+
+
+def shaded_field(field: BlobField, shading: str, light_offset: torch.Tensor, ambient: float,
+                 need_normals: bool, create_graph: bool) -> Callable:
+    """A field callable for the volume renderer returning ``N_CHANNELS`` per sample:
+    shaded colour (3), orientation penalty max(0, n.d)^2 (1) and unit normal (3).
+
+    ``light_offset`` (3,) is added to the direction towards the camera (``-dirs``) to make
+    the light direction. Without ``need_normals`` (albedo only) the last 4 channels are 0.
+    """
+    if shading not in SHADINGS:
+        raise UserError(f"unknown shading '{shading}' (known: {', '.join(SHADINGS)})")
+    need_normals = need_normals or shading != "albedo"
+
+    def fn(points: torch.Tensor, dirs: torch.Tensor):
+        if not need_normals:
+            sigma, albedo = field(points, dirs)
+            return sigma, torch.cat([albedo, albedo.new_zeros(albedo.shape[0], 4)], dim=-1)
+        with torch.enable_grad():
+            x = points.detach().requires_grad_(True)
+            sigma, albedo = field(x, dirs)
+            normals = density_normals(sigma, x, create_graph=create_graph)
+        if not create_graph:
+            sigma, albedo, normals = sigma.detach(), albedo.detach(), normals.detach()
+        light = F.normalize(-dirs + light_offset.to(dirs), dim=-1)
+        diffuse = ambient + (1.0 - ambient) * (normals * light).sum(-1, keepdim=True).clamp_min(0.0)
+        if shading == "albedo":
+            colour = albedo
+        elif shading == "lambertian":
+            colour = albedo * diffuse
+        elif shading == "textureless":
+            colour = diffuse.expand(-1, 3)
+        else:
+            colour = (normals + 1.0) / 2.0
+        orient = orientation_penalty(normals, dirs)[:, None]
+        return sigma, torch.cat([colour, orient, normals], dim=-1)
+
+    return fn
+
+
+def render_views(field: BlobField, cams: Cameras, shading: str, *, n_samples: int, background,
+                 light_offset: Optional[torch.Tensor] = None, ambient: float = 0.3,
+                 need_normals: bool = True, training: bool = False,
+                 generator: Optional[torch.Generator] = None, chunk: int = 0,
+                 grid: Optional[OccupancyGrid] = None) -> Dict[str, torch.Tensor]:
+    """Render B cameras -> image (B, H, W, 3), opacity (B, H, W), depth (B, H, W) (sum w t),
+    orient (B, H, W) (sum w max(0, n.d)^2), normal (B, H, W, 3) (sum w n).
+
+    ``training`` jitters the samples and keeps the graph (also through the normals).
+    ``chunk`` > 0 renders that many rays per call (evaluation, without a graph). ``grid``:
+    samples in its empty cells are skipped (density 0 there).
+    """
+    origins, dirs = camera_rays(cams, normalize=True)
+    if light_offset is None:
+        light_offset = torch.zeros(3, device=origins.device)
+    fn = shaded_field(field, shading, light_offset, ambient, need_normals, create_graph=training)
+    bg = torch.zeros(N_CHANNELS, device=origins.device)
+    bg[:3] = torch.as_tensor(background, dtype=torch.float32, device=origins.device)
+
+    def render(o, d):
+        out = render_field_rays(fn, o, d, scene_box=SCENE_BOX, n_samples=n_samples, perturb=training,
+                                generator=generator, background=bg, grid=grid)
+        return {"color": out["color"], "opacity": out["opacity"], "depth": out["depth"]}
+
+    if chunk > 0:
+        out = render_rays_chunked(render, origins, dirs, chunk)
+    else:
+        flat = render(origins.reshape(-1, 3), dirs.reshape(-1, 3))
+        out = {k: v.reshape(*origins.shape[:-1], *v.shape[1:]) for k, v in flat.items()}
+    c = out["color"]
+    return {"image": c[..., :3], "orient": c[..., 3], "normal": c[..., 4:7], "opacity": out["opacity"],
+            "depth": out["depth"]}
+
+
+def normals_as_latent(out: Dict[str, torch.Tensor]) -> torch.Tensor:
+    """(B, 4, H, W) latent from a render: composited normals (3, in [-1, 1]) and 2 opacity - 1."""
+    return torch.cat([out["normal"], 2.0 * out["opacity"][..., None] - 1.0], dim=-1).permute(0, 3, 1, 2)
+
+
+def shading_sampler(probs) -> Callable[[torch.Generator], str]:
+    """Draw a shading name with the configured probabilities (normalised; all >= 0)."""
+    names = list(probs.keys())
+    unknown = [n for n in names if n not in SHADINGS]
+    if unknown:
+        raise UserError(f"unknown shading '{unknown[0]}' in shading_probs (known: {', '.join(SHADINGS)})")
+    p = torch.tensor([float(probs[n]) for n in names])
+    if bool((p < 0).any()) or float(p.sum()) <= 0:
+        raise UserError(f"shading_probs must be >= 0 with a positive sum, got {dict(probs)}")
+    cdf = torch.cumsum(p / p.sum(), 0)
+
+    def draw(generator: torch.Generator) -> str:
+        u = float(torch.rand((), generator=generator, device=generator.device))
+        return names[min(int(torch.searchsorted(cdf, torch.tensor(u))), len(names) - 1)]
+
+    return draw
+
+
+def depth_gray(depth: torch.Tensor, opacity: torch.Tensor) -> torch.Tensor:
+    """(N, H, W, 3) depth picture: white = near, dark = far over the opaque pixels, black = empty."""
+    d = depth / opacity.clamp_min(1e-6)
+    hit = opacity > 0.5
+    lo = d[hit].min() if bool(hit.any()) else d.min()
+    hi = d[hit].max() if bool(hit.any()) else d.max()
+    gray = torch.where(hit, 1.0 - 0.8 * (d - lo) / (hi - lo).clamp_min(1e-6), torch.zeros_like(d))
+    return gray[..., None].expand(*gray.shape, 3)
+
+
+def _view_dependent(cfg) -> bool:
+    value = str(cfg.view_dependent).lower()
+    if value == "auto":
+        return str(cfg.prior.name) != "builtin"
+    if value in ("true", "false"):
+        return value == "true"
+    raise UserError(f"view_dependent must be auto, true or false, got {cfg.view_dependent!r}")
+
+
+@TASKS.register("sds_nerf")
+def sds_nerf(cfg, ctx) -> dict:
+    """Optimise the field by SDS with shading, view prompts and regularisers; write gifs/metrics."""
+    require_positive(cfg, "iters", "lr", "batch_views", "n_samples", "num_frames", "fps", "chunk", "eval_every")
+    if not 0.0 <= float(cfg.latent_iter_ratio) <= 1.0:
+        raise UserError(f"latent_iter_ratio must be in [0, 1], got {cfg.latent_iter_ratio}")
+    if not 0.0 <= float(cfg.ambient) <= 1.0:
+        raise UserError(f"ambient must be in [0, 1], got {cfg.ambient}")
+    prior = load_prior(cfg, ctx.device)
+    prompt = str(cfg.prompt)
+    overrides = {str(k): str(v) for k, v in dict(cfg.get("view_prompts") or {}).items() if v}
+    views = ViewPrompts.build(prior, prompt, _view_dependent(cfg), str(cfg.view_template), overrides,
+                              float(cfg.overhead_deg))
+    latent_iters = 0
+    if prior.is_latent:
+        latent_iters = int(math.floor(float(cfg.latent_iter_ratio) * int(cfg.iters)))
+        if latent_iters > 0 and prior.latent_shape[0] != 4:
+            raise UserError(f"latent_iter_ratio > 0 needs a 4-channel latent prior, this one has "
+                            f"{prior.latent_shape[0]} channels; set latent_iter_ratio=0")
+    size = int(cfg.render_size) if int(cfg.render_size) > 0 else int(prior.image_size)
+    base = MODELS.build(cfg.model, scene_box=[list(SCENE_BOX[0]), list(SCENE_BOX[1])])
+    field = BlobField(base, float(cfg.blob_density), float(cfg.blob_radius)).to(ctx.device)
+    n_params = sum(p.numel() for p in field.parameters())
+    draw_shading = shading_sampler(dict(cfg.shading_probs))
+    bg = [float(c) for c in cfg.background]
+    render_kw = dict(n_samples=int(cfg.n_samples), background=bg, ambient=float(cfg.ambient))
+    ranges = {k: list(cfg[k]) for k in ("distance_range", "elevation_range", "fov_range")}
+    lam_e, lam_o = float(cfg.lambda_entropy), float(cfg.lambda_orient)
+    opt = torch.optim.Adam(field.parameters(), lr=float(cfg.lr), eps=1e-15)
+    grid, extra = None, {}
+    if bool(cfg.occupancy.enabled):
+        grid = OccupancyGrid(SCENE_BOX, resolution=int(cfg.occupancy.resolution),
+                             threshold=float(cfg.occupancy.threshold), decay=float(cfg.occupancy.decay),
+                             warmup_steps=int(cfg.occupancy.warmup_steps),
+                             update_every=int(cfg.occupancy.update_every)).to(ctx.device)
+        grid.update(field.density, 0, ctx.generator, force=True)     # start from the blob's extent
+        extra["occupancy"] = grid
+    render_kw["grid"] = grid
+    trainable = Trainable({"field": field}, opt, extra=extra)
+    gen = ctx.generator
+
+    def step_fn(step: int) -> Dict[str, torch.Tensor]:
+        latent = step < latent_iters
+        side = prior.latent_shape[-1] if latent else size
+        cams, azim, elev = sample_orbit_cameras(int(cfg.batch_views), side, gen, distance=ranges["distance_range"],
+                                                elevation=ranges["elevation_range"], fov=ranges["fov_range"],
+                                                device=ctx.device)
+        shading = "normal" if latent else draw_shading(gen)
+        offset = float(cfg.light_jitter) * torch.randn(3, generator=gen, device=gen.device).to(ctx.device)
+        out = render_views(field, cams, shading, light_offset=offset, training=True, generator=gen,
+                           need_normals=latent or (lam_o > 0 and shading != "albedo"), **render_kw)
+        x = normals_as_latent(out) if latent else rgb_to_model_space(prior, out["image"], channels_last=True)
+        sds = sds_loss(prior, x, views.embedding(azim, elev), float(cfg.guidance_scale), float(cfg.t_min),
+                       float(cfg.t_max), generator=gen, on_nonfinite="flag")
+        entropy = opacity_entropy(out["opacity"])
+        orient = out["orient"].mean()
+        return {"loss": sds.loss + lam_e * entropy + lam_o * orient, "sds": sds.loss.detach(),
+                "entropy": entropy.detach(), "orient": orient.detach(),
+                "opacity": out["opacity"].mean().detach(), "latent": torch.tensor(float(latent)),
+                "shading": torch.tensor(float(SHADINGS.index(shading)))}
+
+    cams_360 = turntable(int(cfg.num_frames), float(cfg.eval_distance), float(cfg.eval_elevation),
+                         float(cfg.eval_fov), size, device=ctx.device)
+
+    def render_turntable(cams: Cameras, shading: str) -> Dict[str, torch.Tensor]:
+        return {k: v.detach() for k, v in render_views(field, cams, shading, chunk=int(cfg.chunk),
+                                                       need_normals=False, **render_kw).items()}
+
+    def eval_fn(step: int) -> Dict[str, float]:
+        idx = torch.linspace(0, len(cams_360) - 1, min(int(cfg.eval_views), len(cams_360))).round().long()
+        out = render_turntable(cams_360[idx.to(ctx.device)], "albedo")
+        ctx.logger.image("sds_nerf/front", out["image"][0].clamp(0, 1), step)
+        return {"match_rate": score_frames(out["image"].clamp(0, 1), prompt)["match"],
+                "opacity": float(out["opacity"].mean())}
+
+    def after_step(step: int) -> None:
+        if grid is not None:
+            grid.update(field.density, step, gen)
+
+    with ctx.stopwatch.stage("train"):
+        result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
+                       checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="sds_nerf",
+                       after_step=after_step)
+    with ctx.stopwatch.stage("render"):
+        colour = render_turntable(cams_360, "albedo")
+        plain = render_turntable(cams_360, "textureless")
+    frames = torch.cat([colour["image"].clamp(0, 1), plain["image"].clamp(0, 1),
+                        depth_gray(colour["depth"], colour["opacity"])], dim=2)
+    if not bool(torch.isfinite(frames).all()):
+        raise UserError("the optimised field rendered non-finite values")
+    save_gif(ctx.path("sds_nerf.gif"), frames, fps=float(cfg.fps))
+    save_png(ctx.path("views.png"), torch.cat(list(frames[:: max(1, len(frames) // 4)][:4]), dim=0))
+    ctx.logger.image_sequence("sds_nerf/turntable", frames)
+    train_s = ctx.stopwatch.stages["train"]
+    return {
+        "prompt": prompt,
+        "prior": str(cfg.prior.name),
+        "view_prompts": dict(zip(VIEWS, views.prompts)),
+        **score_metrics(score_frames(colour["image"].clamp(0, 1), prompt)),
+        "opacity": round(float(colour["opacity"].mean()), 5),
+        "opacity_entropy": round(float(opacity_entropy(colour["opacity"])), 5),
+        "orientation": round(float(plain["orient"].mean()), 6),
+        "guidance_scale": float(cfg.guidance_scale),
+        "latent_iters": min(latent_iters, result.step),
+        "occupied_fraction": round(grid.occupied_fraction, 5) if grid is not None else 1.0,
+        "iters": result.step,
+        "n_params": n_params,
+        "render_size": size,
+        "train_seconds": round(train_s, 4),
+        "seconds_per_iter": round(train_s / max(result.step, 1), 5),
+        "skipped_steps": result.skipped_steps,
+        "history": result.history_rows(),
+        "interrupted": result.interrupted,
+    }
