@@ -45,6 +45,8 @@ MODULES = (
     "l3d_app.data.bunny",
     "l3d_app.tasks.volsdf",
     "l3d_app.tasks.neural_sdf",
+    "l3d_app.tasks.svr_train",
+    "l3d_app.tasks.svr_eval",
     "l3d_app.data.svr_shapes",
     "l3d_app.models.svr_decoders",
     "l3d_app.models.svr_pseudo",

@@ -20,8 +20,7 @@ from l3d_app.data.svr_shapes import SVRData
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.geometry.pointcloud import PointCloud
-from l3d_app.metrics.chamfer import chamfer_distance, nearest_distances
-from l3d_app.metrics.fscore import fscore
+from l3d_app.metrics.chamfer import nearest_distances, nearest_neighbors_both
 from l3d_app.models import svr_decoders, svr_pseudo  # noqa: F401  (register the decoders)
 from l3d_app.models.svr_encoder import ImageEncoder
 from l3d_app.registry import DATASETS, MODELS
@@ -102,7 +101,10 @@ def load_model(path, device) -> Tuple[SVRModel, Dict[str, Any]]:
         p = p / MODEL_FILE
     if not p.is_file():
         raise UserError(f"svr model checkpoint not found: {p} (train one with task=svr_train)")
-    meta = torch.load(p, map_location="cpu", weights_only=False)
+    try:
+        meta = torch.load(p, map_location="cpu", weights_only=False)
+    except Exception as err:  # not a torch file, truncated, ...
+        raise UserError(f"cannot read svr model checkpoint {p}: {err}") from err
     if not isinstance(meta, dict) or "decoder_cfg" not in meta:
         raise UserError(f"{p} is not an svr_train model file ({MODEL_FILE})")
     model = build_model(meta["encoder_cfg"], meta["decoder_cfg"], meta["geometry"])
@@ -135,6 +137,21 @@ def predict_points(model: SVRModel, data: SVRData, objects: torch.Tensor, views:
     return out, seconds
 
 
+@torch.no_grad()
+def f1_curve(pred: torch.Tensor, target: torch.Tensor, thresholds: Sequence[float]) -> Tuple[np.ndarray, float]:
+    """F1 of ``pred`` (N, 3) vs ``target`` (M, 3) at every threshold from ONE nearest-neighbour
+    pass (the same definition as :func:`l3d_app.metrics.fscore.fscore`, which would search
+    again per threshold), and the chamfer distance (sum of mean squared nearest distances)."""
+    idx_pt, idx_tp = nearest_neighbors_both(pred, target, chunk_size=int(pred.shape[0]))
+    d_pt = (pred - target[idx_pt]).norm(dim=-1)
+    d_tp = (target - pred[idx_tp]).norm(dim=-1)
+    th = torch.tensor([float(t) for t in thresholds], dtype=d_pt.dtype)
+    p = (d_pt[None] <= th[:, None]).double().mean(1)
+    r = (d_tp[None] <= th[:, None]).double().mean(1)
+    f1 = torch.where(p + r > 0, 2 * p * r / (p + r).clamp_min(1e-300), torch.zeros_like(p))
+    return f1.numpy(), float(d_pt.square().mean() + d_tp.square().mean())
+
+
 def f1_table(preds: Sequence[torch.Tensor], targets: Sequence[torch.Tensor], thresholds: Sequence[float]
              ) -> Dict[str, Any]:
     """Mean over objects of F1 at each threshold (empty predictions score 0) and the mean
@@ -146,8 +163,8 @@ def f1_table(preds: Sequence[torch.Tensor], targets: Sequence[torch.Tensor], thr
         if p.shape[0] == 0:
             empty += 1
             continue
-        f1[i] = [fscore(p, t, float(th))["f1"] for th in thresholds]
-        chamfers.append(float(chamfer_distance(p, t)))
+        f1[i], ch = f1_curve(p, t, thresholds)
+        chamfers.append(ch)
     return {"f1": f1.mean(0), "chamfer": float(np.mean(chamfers)) if chamfers else None, "empty": empty}
 
 
