@@ -88,15 +88,17 @@ def test_volsdf_short_run_improves_psnr_and_writes_everything(compose, tmp_path)
     cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=120", "eval_every=40",
                   "batch_rays=256", "lr=0.005", "pretrain_steps=50", "gif_frames=2", "mesh_resolution=32",
                   "eval_points=2000", "mesh_format=obj")
-    assert (cfg.beta, cfg.alpha, cfg.density) == (0.05, 10.0, "volsdf")
+    assert (cfg.beta, cfg.alpha, cfg.beta_mode, cfg.density) == (0.1, None, "anneal", "volsdf")
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    for key in ("psnr", "ssim", "chamfer", "f1", "seconds", "samples_per_ray", "iters", "n_params", "beta"):
+    for key in ("psnr", "ssim", "chamfer", "chamfer_rel_diag", "f1", "seconds", "samples_per_ray",
+                "fine_samples_per_ray", "iters", "n_params", "beta", "beta_final", "cpu_seconds_per_step"):
         assert key in m, key
     hist = [h["psnr"] for h in m["history"]]
     assert len(hist) == 3 and hist[-1] > hist[0] + 0.25 and hist[-1] > 14.5, hist
     assert np.isfinite(m["chamfer"]) and 0 <= m["f1"] <= 1
-    assert 0 < m["samples_per_ray"] <= 96
+    assert 0 < m["fine_samples_per_ray"] <= cfg.n_fine and m["samples_per_ray"] <= cfg.n_coarse + cfg.n_fine
+    assert m["chamfer_rel_diag"] == pytest.approx(m["chamfer"] / 2.1354, rel=1e-3)     # the true mesh's diagonal
     for name in ("render.gif", "geometry.gif", "mesh.obj", "test_views.png", "checkpoint.pt"):
         assert (tmp_path / "run" / name).exists(), name
 

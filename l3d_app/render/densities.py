@@ -15,7 +15,8 @@ finite gradient, so no NaN leaks into autograd.
 
 from __future__ import annotations
 
-from typing import Union
+import math
+from typing import Optional, Union
 
 import torch
 
@@ -46,3 +47,56 @@ def volsdf_density(sdf: torch.Tensor, alpha: Scalar, beta: Scalar) -> torch.Tens
     a per-sample opacity (the course's rule), see ``l3d_app/tasks/box.py``.
     """
     return alpha * laplace_cdf(-sdf, beta)
+
+
+class LaplaceDensity(torch.nn.Module):
+    """VolSDF density with a fixed or learnable ``beta`` and ``alpha`` fixed or tied to ``1/beta``.
+
+    ``beta = beta_min + exp(rho)`` (``rho`` a parameter when ``learnable``, initialised so that
+    ``beta`` starts at ``beta_init``; a buffer otherwise), ``alpha = alpha`` if given, else
+    ``1 / beta`` (VolSDF's choice: the density inside is the inverse of the smoothing length, so
+    the opacity across the surface does not depend on ``beta``). ``forward(sdf) -> sigma``
+    (1 / world units), same shape as ``sdf``; never overflows (:func:`volsdf_density`).
+
+    Args:
+        beta_init: initial (or fixed) Laplace scale, world units, > beta_min.
+        alpha: density inside (1 / world units) or None for ``1 / beta``.
+        learnable: train ``beta`` (with the field's optimiser).
+        beta_min: floor of ``beta`` (world units, >= 0).
+    """
+
+    def __init__(self, beta_init: float = 0.1, alpha: Optional[float] = None, learnable: bool = True,
+                 beta_min: float = 1e-4):
+        super().__init__()
+        if not beta_init > beta_min >= 0:
+            raise ValueError(f"LaplaceDensity needs beta_init > beta_min >= 0, got {beta_init}, {beta_min}")
+        if alpha is not None and not alpha > 0:
+            raise ValueError(f"alpha must be > 0 or None (1 / beta), got {alpha}")
+        rho = torch.tensor(math.log(float(beta_init) - float(beta_min)))
+        if learnable:
+            self.rho = torch.nn.Parameter(rho)
+        else:
+            self.register_buffer("rho", rho)
+        self.beta_min, self.fixed_alpha = float(beta_min), alpha
+
+    @torch.no_grad()
+    def set_beta(self, value: float) -> None:
+        """Set beta (world units, > beta_min), e.g. from an annealing schedule."""
+        if not value > self.beta_min:
+            raise ValueError(f"beta must be > beta_min = {self.beta_min}, got {value}")
+        self.rho.fill_(math.log(float(value) - self.beta_min))
+
+    @property
+    def beta(self) -> torch.Tensor:
+        """Current beta (scalar tensor, world units)."""
+        return self.beta_min + torch.exp(self.rho)
+
+    @property
+    def alpha(self) -> torch.Tensor:
+        """Current alpha (scalar tensor, 1 / world units)."""
+        return 1.0 / self.beta if self.fixed_alpha is None else torch.as_tensor(float(self.fixed_alpha))
+
+    def forward(self, sdf: torch.Tensor) -> torch.Tensor:
+        beta = self.beta
+        alpha = 1.0 / beta if self.fixed_alpha is None else float(self.fixed_alpha)
+        return volsdf_density(sdf, alpha, beta)

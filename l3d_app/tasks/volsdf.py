@@ -3,26 +3,42 @@
 ``python main.py task=volsdf beta=0.1`` (VolSDF, ``alpha``/``beta`` at the top level) or
 ``density=neus s=64`` (NeuS). Pieces:
 
-* model :class:`~l3d_app.models.sdf_net.SDFField` (SDF MLP without output activation,
-  geometric init, then :func:`~l3d_app.models.sdf_net.pretrain_sphere` for ``pretrain_steps``);
-* rays bounded by the data's scene box; a coarse SDF-only pass places ``n_fine`` samples near the
-  zero level set (:func:`~l3d_app.render.sdf_volume.render_sdf_rays`); ``samples_per_ray``
-  counts both passes;
-* loss: colour MSE + ``w_eikonal`` x eikonal loss at random points in the box and at the fine
-  samples of the batch, through the shared :func:`~l3d_app.runtime.training.train` loop
-  (evaluation, checkpoints, ``resume=true``).
+* model (``model=sdf_grid_field``, default): :class:`~l3d_app.models.sdf_grid.SDFGridField`,
+  a multi-resolution grid (table near zero) + small MLP initialised to a sphere of
+  ``model.radius`` and pretrained to it (MLP only) for ``pretrain_steps``; its exact spatial
+  gradient (no double backward) feeds the colour network (normal) and the eikonal loss. Grid
+  levels are switched on coarse to fine: ``levels_start`` levels, one more every
+  ``level_every`` steps. ``model=sdf_field`` is the slower harmonic-MLP alternative.
+* density: VolSDF ``sigma = alpha * Psi_beta(-f)`` (:class:`~l3d_app.render.densities.LaplaceDensity`).
+  ``beta`` is the initial value; with ``beta_mode=learnable`` (default) it is trained with
+  the field (floor ``beta_min``), with ``beta_mode=fixed`` it stays. ``alpha=null`` ties
+  ``alpha = 1/beta`` (VolSDF), a number fixes it. NeuS: ``density=neus`` with fixed ``s``.
+* sampling only near the surface: a trilinear :class:`~l3d_app.render.sdf_volume.SDFGridCache`
+  of the SDF (``cache_resolution``^3, refreshed every ``cache_every`` steps, no grad) gives
+  ``n_coarse`` look-ups per ray whose VolSDF weights place ``n_fine`` field samples at the
+  zero level set (:func:`~l3d_app.render.sdf_volume.render_sdf_rays`); metrics report both
+  counts (``samples_per_ray``, ``fine_samples_per_ray``).
+* loss: colour MSE + ``w_eikonal`` x eikonal loss at the fine samples and at
+  ``eikonal_points`` random box points, through the shared
+  :func:`~l3d_app.runtime.training.train` loop (evaluation, checkpoints, ``resume=true``);
+  Adam (eps 1e-15) with ``warmup_steps`` linear warm-up then cosine decay to
+  ``lr * lr_final_ratio``; ``time_budget`` > 0 stops training after that many seconds.
 
 Evaluation: test PSNR / SSIM; a marching-cubes mesh of the SDF's zero level set, scored
 against the ground-truth surface when the data has one (the built-in scene): ``chamfer`` is
 the symmetric mean of NON-squared nearest distances (world units, ``mean_x d(x, Y) +
-mean_y d(y, X)`` on ``eval_points`` samples of each surface), ``chamfer_diag`` the same divided by
-the ground truth's bounding-box diagonal, ``f1`` the F-score at ``f1_threshold`` (0.05).
+mean_y d(y, X)`` on ``eval_points`` samples of each surface), ``chamfer_rel_diag`` the same
+divided by the ground-truth mesh's bounding-box diagonal, ``f1`` the F-score at
+``f1_threshold`` (0.05).
 Outputs: ``render.gif`` (360 colour), ``geometry.gif`` (360 sphere-traced shading of the SDF),
 ``mesh.<ply|obj>``, ``test_views.png``, ``metrics.json``.
 """
 
 from __future__ import annotations
 
+import math
+import os
+import signal
 import time
 from typing import Dict
 
@@ -34,13 +50,14 @@ from l3d_app.geometry.marching_cubes import sdf_to_mesh
 from l3d_app.geometry.mesh_io import save_mesh
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.geometry.sampling import sample_surface
-from l3d_app.losses.eikonal import eikonal_loss
+from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
 from l3d_app.metrics.chamfer import chamfer_distance
 from l3d_app.metrics.fscore import fscore
 from l3d_app.metrics.image import psnr, ssim
-from l3d_app.models.sdf_net import pretrain_sphere
+from l3d_app.models.sdf_grid import pretrain_field
 from l3d_app.registry import DATASETS, MODELS, TASKS
-from l3d_app.render.sdf_volume import DENSITIES, render_sdf_rays
+from l3d_app.render.densities import LaplaceDensity
+from l3d_app.render.sdf_volume import DENSITIES, SDFGridCache, render_sdf_rays
 from l3d_app.render.sphere_tracing import render_sdf_shaded
 from l3d_app.render.volume import render_rays_chunked
 from l3d_app.runtime.media import save_gif, save_png
@@ -51,18 +68,33 @@ from l3d_app.tasks.common import require_positive
 @TASKS.register("volsdf")
 def volsdf(cfg, ctx) -> dict:
     """Train, evaluate (images and surface), write gifs / mesh / metrics."""
-    require_positive(cfg, "iters", "batch_rays", "lr", "n_coarse", "n_fine", "chunk", "beta", "alpha", "s")
+    require_positive(cfg, "iters", "batch_rays", "lr", "n_coarse", "n_fine", "chunk", "beta", "s")
     density = str(cfg.density)
     if density not in DENSITIES:
         raise UserError(f"density must be one of {', '.join(DENSITIES)}, got {density!r}")
+    beta_mode = str(cfg.beta_mode)
+    if beta_mode not in ("anneal", "learnable", "fixed"):
+        raise UserError(f"beta_mode must be anneal, learnable or fixed, got {cfg.beta_mode!r}")
+    alpha = cfg.get("alpha")
+    if alpha is not None and not (isinstance(alpha, (int, float)) and alpha > 0):
+        raise UserError(f"alpha must be a positive number or null (1/beta), got {alpha!r}")
+    if not 0 <= float(cfg.beta_min) < min(float(cfg.beta), float(cfg.beta_end)):
+        raise UserError(f"beta_min must be in [0, min(beta, beta_end)), got {cfg.beta_min} "
+                        f"(beta={cfg.beta}, beta_end={cfg.beta_end})")
     data = DATASETS.build(cfg.data).to(ctx.device)
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
+    dens = LaplaceDensity(float(cfg.beta), None if alpha is None else float(alpha),
+                          learnable=beta_mode == "learnable", beta_min=float(cfg.beta_min)).to(ctx.device)
+    anneal_steps = max(1.0, float(cfg.anneal_fraction) * int(cfg.iters))
     n_params = sum(p.numel() for p in model.parameters())
-    if int(cfg.pretrain_steps) > 0 and not (bool(cfg.resume) and (ctx.out_dir / "checkpoint.pt").exists()):
-        err = pretrain_sphere(model.sdf_net, float(cfg.model.sdf_net.radius), box, steps=int(cfg.pretrain_steps),
-                              generator=ctx.generator)
+    resuming = bool(cfg.resume) and (ctx.out_dir / "checkpoint.pt").exists()
+    if int(cfg.pretrain_steps) > 0 and not resuming:
+        err = pretrain_field(model, float(cfg.model.radius if "radius" in cfg.model else cfg.model.sdf_net.radius),
+                             box, int(cfg.pretrain_steps), generator=ctx.generator)
         ctx.logger.text("pretrain", f"sphere pretraining: mean |f - sdf_sphere| = {err:.4g}")
+    levels = _LevelSchedule(model, int(cfg.levels_start), int(cfg.level_every))
+    cache = SDFGridCache(box, int(cfg.cache_resolution)).to(ctx.device) if int(cfg.cache_resolution) > 1 else None
 
     origins, dirs = camera_rays(data.cameras, normalize=True)                 # (N, H, W, 3)
     tr = data.train.to(ctx.device)
@@ -72,33 +104,45 @@ def volsdf(cfg, ctx) -> dict:
     lo = torch.tensor(box[0], device=ctx.device)
     hi = torch.tensor(box[1], device=ctx.device)
 
-    opt = torch.optim.Adam(model.parameters(), lr=float(cfg.lr))
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, int(cfg.iters)),
-                                                       eta_min=float(cfg.lr) * float(cfg.lr_final_ratio))
-    trainable = Trainable({"field": model}, opt, extra={"scheduler": sched})
-    rkw = dict(scene_box=box, density=density, alpha=float(cfg.alpha), beta=float(cfg.beta), s=float(cfg.s),
-               n_coarse=int(cfg.n_coarse), n_fine=int(cfg.n_fine), background=data.background)
-    stats = {"samples_per_ray": 0.0, "fine_samples_per_ray": 0.0, "train_seconds": 0.0, "steps": 0}
+    opt = torch.optim.Adam([{"params": list(model.parameters())},
+                            {"params": list(dens.parameters()), "lr": float(cfg.lr_beta)}],
+                           lr=float(cfg.lr), eps=1e-15)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, _warmup_cosine(int(cfg.iters), int(cfg.warmup_steps),
+                                                                  float(cfg.lr_final_ratio)))
+    extra = {"scheduler": sched}
+    if cache is not None:
+        extra["sdf_cache"] = cache
+    trainable = Trainable({"field": model, "density": dens}, opt, extra=extra)
+    fixed = dict(scene_box=box, density=density, s=float(cfg.s), n_coarse=int(cfg.n_coarse),
+                 n_fine=int(cfg.n_fine), background=data.background, coarse_fn=cache)
+    field_fn = _field_with_gradient(model)
+    stats = {"samples_per_ray": 0.0, "fine_samples_per_ray": 0.0, "train_seconds": 0.0, "cpu_seconds": 0.0,
+             "steps": 0}
+    budget = float(cfg.get("time_budget", 0) or 0)
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
-        stats["_t0"] = time.perf_counter()
+        stats["_t0"], stats["_c0"] = time.perf_counter(), time.process_time()
+        levels.apply(step)
+        if beta_mode == "anneal":      # geometric from beta to beta_end over anneal_fraction of the run
+            p = min(1.0, step / anneal_steps)
+            dens.set_beta(float(cfg.beta) * (float(cfg.beta_end) / float(cfg.beta)) ** p)
+        if cache is not None and (step % int(cfg.cache_every) == 0 or stats["steps"] == 0):
+            cache.update(model.sdf)
         idx = torch.randint(0, n_rays, (batch,), generator=ctx.generator,
                             device=ctx.generator.device).to(ctx.device)
-        out = render_sdf_rays(model.sdf, model, flat_o[idx], flat_d[idx], perturb=True, generator=ctx.generator,
-                              **rkw)
+        out = render_sdf_rays(model.sdf, field_fn, flat_o[idx], flat_d[idx], alpha=dens.alpha, beta=dens.beta,
+                              perturb=True, generator=ctx.generator, **fixed)
         color_loss = ((out["color"] - flat_rgb[idx]) ** 2).mean()
-        logs = {"color_loss": color_loss.detach(), "samples_per_ray": out["samples_per_ray"].detach()}
+        logs = {"color_loss": color_loss.detach(), "samples_per_ray": out["samples_per_ray"].detach(),
+                "beta": dens.beta.detach(), "active_levels": torch.tensor(float(levels.active))}
         loss = color_loss
         if float(cfg.w_eikonal) > 0:
-            n_eik = int(cfg.eikonal_points)
-            u = torch.rand(n_eik, 3, generator=ctx.generator, device=ctx.generator.device).to(ctx.device)
-            near = (flat_o[idx, None, :] + out["t"][..., None] * flat_d[idx, None, :]).reshape(-1, 3)
-            pick = torch.randint(0, near.shape[0], (n_eik,), generator=ctx.generator,
-                                 device=ctx.generator.device).to(ctx.device)
-            pts = torch.cat([lo + u * (hi - lo), near[pick].detach()]).requires_grad_(True)
-            f = model.sdf(pts)
-            (grad,) = torch.autograd.grad(f.sum(), pts, create_graph=True)
-            eik = eikonal_loss(grad)
+            u = torch.rand(int(cfg.eikonal_points), 3, generator=ctx.generator,
+                           device=ctx.generator.device).to(ctx.device)
+            grads = [_gradient_at(model, lo + u * (hi - lo))]
+            if "grad" in out:
+                grads.append(out["grad"].reshape(-1, 3))
+            eik = eikonal_loss(torch.cat(grads))
             loss = loss + float(cfg.w_eikonal) * eik
             logs["eikonal"] = eik.detach()
         stats["samples_per_ray"] = float(out["samples_per_ray"])
@@ -109,20 +153,26 @@ def volsdf(cfg, ctx) -> dict:
     def after_step(step: int) -> None:
         sched.step()
         stats["train_seconds"] += time.perf_counter() - stats.pop("_t0", time.perf_counter())
+        stats["cpu_seconds"] += time.process_time() - stats.pop("_c0", time.process_time())
         stats["steps"] += 1
+        if budget > 0 and stats["train_seconds"] >= budget:
+            os.kill(os.getpid(), signal.SIGINT)     # the shared loop stops cleanly on SIGINT
 
     def render_fn(o: torch.Tensor, d: torch.Tensor) -> Dict[str, torch.Tensor]:
-        out = render_sdf_rays(model.sdf, model, o, d, **rkw)
+        out = render_sdf_rays(model.sdf, field_fn, o, d, alpha=dens.alpha.detach(), beta=dens.beta.detach(),
+                              **fixed)
         return {k: out[k] for k in ("color", "depth", "opacity")}
 
     n_eval = int(cfg.eval_views) if int(cfg.eval_views) > 0 else len(data.test)
     eval_idx = data.test[:n_eval].to(ctx.device)
 
     def eval_fn(step: int) -> Dict[str, float]:
-        pred = render_rays_chunked(render_fn, origins[eval_idx], dirs[eval_idx], int(cfg.chunk))["color"].clamp(0, 1)
+        with torch.no_grad():
+            pred = render_rays_chunked(render_fn, origins[eval_idx], dirs[eval_idx], int(cfg.chunk))["color"]
         target = data.images[eval_idx]
-        return {"psnr": float(psnr(pred, target)), "ssim": float(ssim(pred, target)),
-                "samples_per_ray": stats["samples_per_ray"], "train_seconds": stats["train_seconds"]}
+        return {"psnr": float(psnr(pred.clamp(0, 1), target)), "ssim": float(ssim(pred.clamp(0, 1), target)),
+                "beta": float(dens.beta), "samples_per_ray": stats["samples_per_ray"],
+                "train_seconds": stats["train_seconds"], "cpu_seconds": stats["cpu_seconds"]}
 
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
@@ -130,33 +180,100 @@ def volsdf(cfg, ctx) -> dict:
                        after_step=after_step)
     model.eval()
     with torch.no_grad():
+        if cache is not None:
+            cache.update(model.sdf)
         te = data.test.to(ctx.device)
         pred = render_rays_chunked(render_fn, origins[te], dirs[te], int(cfg.chunk))["color"].clamp(0, 1)
         target = data.images[te]
         metrics = {"psnr": round(float(psnr(pred, target)), 4), "ssim": round(float(ssim(pred, target)), 4)}
         save_png(ctx.path("test_views.png"), torch.cat([torch.cat(list(pred[:8]), 1), torch.cat(list(target[:8]), 1)], 0))
-    metrics.update(_surface_metrics(cfg, ctx, model, box))
+    with ctx.stopwatch.stage("mesh"):
+        metrics.update(_surface_metrics(cfg, ctx, model, box))
     if int(cfg.gif_frames) > 0:
-        _turntables(cfg, ctx, model, render_fn, data, box)
+        with ctx.stopwatch.stage("gifs"):
+            _turntables(cfg, ctx, model, render_fn, data, box)
     metrics.update({
-        "density": density, "alpha": float(cfg.alpha), "beta": float(cfg.beta), "s": float(cfg.s),
+        "density": density, "alpha": None if alpha is None else float(alpha), "beta": float(cfg.beta),
+        "beta_mode": beta_mode, "beta_final": round(float(dens.beta), 6),
+        "alpha_final": round(float(dens.alpha), 4), "s": float(cfg.s),
         "iters": result.step, "n_params": n_params,
         "train_seconds": round(ctx.stopwatch.stages["train"], 4),
+        "mesh_seconds": round(ctx.stopwatch.stages["mesh"], 4),
+        "gif_seconds": round(ctx.stopwatch.stages.get("gifs", 0.0), 4),
         "samples_per_ray": round(stats["samples_per_ray"], 3),
         "fine_samples_per_ray": round(stats["fine_samples_per_ray"], 3),
         "rays_per_second": round(stats["steps"] * batch / max(stats["train_seconds"], 1e-9), 1),
+        "seconds_per_step": round(stats["train_seconds"] / max(stats["steps"], 1), 4),
+        # CPU time of the training steps (all threads): the per-step cost on a shared machine
+        "cpu_seconds_per_step": round(stats["cpu_seconds"] / max(stats["steps"], 1), 4),
         "history": result.history_rows(),
     })
     return metrics
 
 
-def _ground_truth_points(cfg, n: int):
-    """(n, 3) points on the data's true surface, or None when the data has no known surface."""
+class _LevelSchedule:
+    """Coarse-to-fine grid levels: ``start`` levels at step 0, one more every ``every`` steps
+    (``start <= 0`` or ``every <= 0``: all levels from the start). No-op for models without levels."""
+
+    def __init__(self, model, start: int, every: int):
+        self.model = model if hasattr(model, "set_active_levels") else None
+        self.start, self.every = int(start), int(every)
+        self.active = 0
+
+    def apply(self, step: int) -> None:
+        if self.model is None:
+            return
+        n_levels = self.model.encoding.n_levels
+        n = n_levels if self.start <= 0 or self.every <= 0 else self.start + step // self.every
+        self.model.set_active_levels(min(n, n_levels))
+        self.active = self.model.active_levels
+
+
+def _warmup_cosine(iters: int, warmup: int, final_ratio: float):
+    """LR factor: linear warm-up over ``warmup`` steps, then cosine from 1 to ``final_ratio``."""
+
+    def factor(step: int) -> float:
+        if step < warmup:
+            return (step + 1) / warmup
+        p = min(1.0, (step - warmup) / max(1, iters - warmup))
+        return final_ratio + (1.0 - final_ratio) * 0.5 * (1.0 + math.cos(math.pi * p))
+
+    return factor
+
+
+def _field_with_gradient(model):
+    """``fn(points, dirs) -> (sdf, rgb, grad f)``: the model's own exact gradient when it has one
+    (:class:`~l3d_app.models.sdf_grid.SDFGridField`), else autograd (graph kept while training)."""
+    if hasattr(model, "sdf_rgb_grad"):
+        return model.sdf_rgb_grad
+
+    def fn(points: torch.Tensor, dirs: torch.Tensor):
+        if not torch.is_grad_enabled():
+            return model(points, dirs)
+        p = points.detach().requires_grad_(True)
+        f, rgb = model(p, dirs)
+        (g,) = torch.autograd.grad(f.sum(), p, create_graph=True)
+        return f, rgb, g
+
+    return fn
+
+
+def _gradient_at(model, points: torch.Tensor) -> torch.Tensor:
+    """(N, 3) differentiable SDF gradient at points (N, 3)."""
+    if hasattr(model, "sdf_features_gradient"):
+        return model.sdf_features_gradient(points)[2]
+    return sdf_gradient(model.sdf, points, create_graph=True)
+
+
+def _ground_truth(cfg, n: int):
+    """((n, 3) points on the data's true surface, its bounding-box diagonal) or None when the
+    data has no known surface."""
     if str(cfg.data.name) != "nerf_builtin":
         return None
-    from l3d_app.data.nerf_truth import builtin_surface_points
+    from l3d_app.data.nerf_truth import builtin_surface_bounds, builtin_surface_points
 
-    return builtin_surface_points(n, torch.Generator().manual_seed(1))
+    lo, hi = builtin_surface_bounds()
+    return builtin_surface_points(n, torch.Generator().manual_seed(1)), float((hi - lo).norm())
 
 
 @torch.no_grad()
@@ -175,13 +292,13 @@ def _surface_metrics(cfg, ctx, model, box) -> Dict[str, float]:
     save_mesh(mesh, ctx.path(f"mesh.{fmt}"))
     out: Dict[str, float] = {"mesh_faces": int(mesh.num_faces)}
     n = int(cfg.eval_points)
-    gt = _ground_truth_points(cfg, n)
-    if gt is not None:
+    truth = _ground_truth(cfg, n)
+    if truth is not None:
+        gt, diag = truth
         pred = sample_surface(mesh.to("cpu"), n, generator=torch.Generator().manual_seed(2)).points
         cd = float(chamfer_distance(pred, gt, squared=False))
-        diag = float((gt.max(0).values - gt.min(0).values).norm())
         f = fscore(pred, gt, float(cfg.f1_threshold))
-        out.update({"chamfer": round(cd, 6), "chamfer_diag": round(cd / diag, 6), "f1": round(f["f1"], 4),
+        out.update({"chamfer": round(cd, 6), "chamfer_rel_diag": round(cd / diag, 6), "f1": round(f["f1"], 4),
                     "precision": round(f["precision"], 4), "recall": round(f["recall"], 4)})
     return out
 

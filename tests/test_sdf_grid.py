@@ -1,0 +1,170 @@
+"""Fast neural SDF pieces: grid Jacobian vs autograd, finite differences vs analytic gradients,
+sphere init with a near-zero grid, the trilinear SDF cache, near-surface sample placement,
+the learnable-beta VolSDF density."""
+
+import math
+
+import pytest
+import torch
+
+from l3d_app.errors import UserError
+from l3d_app.geometry.sdf import Sphere, Torus
+from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
+from l3d_app.models.encodings import GridEncoding
+from l3d_app.models.sdf_grid import SDFGridField, finite_difference_gradient, grid_encode_with_jacobian
+from l3d_app.render.densities import LaplaceDensity, volsdf_density
+from l3d_app.render.sdf_volume import SDFGridCache, render_sdf_rays
+
+D = torch.float64
+BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+
+
+def _random_field(**kw) -> SDFGridField:
+    torch.manual_seed(0)
+    field = SDFGridField(scene_box=BOX, n_levels=4, base_resolution=4, max_resolution=40, log2_hashmap_size=12,
+                         hidden=16, n_layers=2, sdf_features=3, color_hidden=8, color_layers=1, **kw).double()
+    with torch.no_grad():           # a non-trivial field: random table, grid columns switched on
+        field.encoding.table.uniform_(-0.3, 0.3)
+        field.layers[0].weight.normal_(0.0, 0.5)
+    return field
+
+
+def test_grid_jacobian_matches_autograd_dense_hashed_and_outside():
+    enc = GridEncoding(n_levels=3, n_features=2, base_resolution=3, max_resolution=40, log2_hashmap_size=10,
+                       bounds=BOX).double()
+    assert bool(enc.hashed.any()) and not bool(enc.hashed.all())
+    with torch.no_grad():
+        enc.table.uniform_(-1, 1)
+    x = torch.rand(300, 3, dtype=D) * 2.4 - 1.2                  # some points outside the box
+    value, jac = grid_encode_with_jacobian(enc, x)
+    torch.testing.assert_close(value, enc(x), atol=1e-12, rtol=0)
+    xr = x.clone().requires_grad_(True)
+    ref = torch.stack([torch.autograd.grad(enc(xr)[:, j].sum(), xr)[0] for j in range(enc.out_dim)], dim=1)
+    torch.testing.assert_close(jac, ref, atol=1e-9, rtol=1e-9)
+    outside = (x.abs() > 1).any(dim=-1)
+    assert outside.any() and bool((jac[outside][..., (x[outside].abs() > 1)[:, None, :].expand(-1, enc.out_dim, -1)]
+                                   == 0).all())
+
+
+def test_field_gradient_analytic_equals_autograd_and_fd_is_close():
+    field = _random_field()
+    x = torch.rand(200, 3, dtype=D) * 1.8 - 0.9
+    f, feat, g = field.sdf_features_gradient(x)
+    torch.testing.assert_close(f, field.sdf(x))
+    # (torch's Softplus is exactly linear beyond beta z > 20, where sigmoid(beta z) = 1 - 2e-9)
+    torch.testing.assert_close(g, sdf_gradient(field.sdf, x, create_graph=False), atol=1e-7, rtol=1e-7)
+    # the analytic gradient is differentiable w.r.t. the table (eikonal backprop, no double backward)
+    (gt,) = torch.autograd.grad(eikonal_loss(g), field.encoding.table)
+    assert torch.isfinite(gt).all() and gt.abs().sum() > 0
+    # central differences: O(h^2) inside a cell, so most points agree closely
+    g_fd = finite_difference_gradient(field.sdf, x, 1e-4)
+    close = ((g_fd - g).norm(dim=-1) < 1e-2 * (1 + g.norm(dim=-1)))
+    assert close.float().mean() > 0.9
+    fd_field = _random_field(gradient="fd", fd_step=1e-4)
+    torch.testing.assert_close(fd_field.sdf_features_gradient(x)[2], g_fd)
+
+
+@pytest.mark.parametrize("sdf", [Sphere(0.6), Torus(0.6, 0.2)])
+def test_finite_difference_eikonal_equals_autograd_on_analytic_sdfs(sdf):
+    x = torch.rand(500, 3, dtype=D) * 1.6 - 0.8
+    x = x[(x.norm(dim=-1) > 0.1) & ((x[:, :2].norm(dim=-1) > 0.1))]      # away from the kinks
+    g_auto = sdf_gradient(sdf, x, create_graph=False)
+    g_fd = finite_difference_gradient(sdf, x, 1e-4)
+    torch.testing.assert_close(g_fd.norm(dim=-1), g_auto.norm(dim=-1), atol=1e-5, rtol=0)
+    torch.testing.assert_close(g_fd, g_auto, atol=1e-5, rtol=0)
+    assert float(eikonal_loss(g_fd)) < 1e-10
+    with pytest.raises(UserError):
+        finite_difference_gradient(sdf, x, 0.0)
+
+
+def test_sphere_init_with_near_zero_grid_and_mlp_only_pretraining():
+    torch.manual_seed(0)
+    field = SDFGridField(scene_box=BOX, n_levels=4, base_resolution=4, max_resolution=32, log2_hashmap_size=12,
+                         radius=0.5)
+    table0 = field.encoding.table.detach().clone()
+    assert float(table0.abs().max()) <= 1e-4
+    x = torch.rand(3000, 3) * 2 - 1
+    r = x.norm(dim=-1)
+    with torch.no_grad():
+        f0 = field.sdf(x)
+    assert (f0[r < 0.2] < 0).float().mean() > 0.9 and (f0[r > 0.9] > 0).float().mean() > 0.9
+    err = field.pretrain_sphere(BOX, steps=150, n_points=2048, lr=3e-3, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        f1 = field.sdf(x)
+    assert err < 0.03 and float((f1 - (r - 0.5)).abs().mean()) < 0.03
+    assert torch.equal(field.encoding.table.detach(), table0)            # the grid was not touched
+    g = field.sdf_features_gradient(x)[2]
+    assert float((g.detach().norm(dim=-1) - 1).abs().mean()) < 0.1
+
+
+def test_level_mask_switches_off_fine_levels():
+    field = _random_field()
+    x = torch.rand(50, 3, dtype=D) * 2 - 1
+    field.set_active_levels(1)
+    assert field.active_levels == 1
+    f1 = field.sdf(x)
+    with torch.no_grad():                                      # change only the finer levels' rows
+        start = int(field.encoding.offsets[1])
+        field.encoding.table[start:] += 1.0
+    torch.testing.assert_close(field.sdf(x), f1)
+    field.set_active_levels(99)
+    assert field.active_levels == 4 and not torch.allclose(field.sdf(x), f1)
+
+
+def test_sdf_cache_is_trilinear_in_the_right_axis_order():
+    lin = lambda p: 0.3 * p[..., 0] - 0.7 * p[..., 1] + 0.2 * p[..., 2] + 0.1     # noqa: E731
+    cache = SDFGridCache(((-1, -0.5, 0.0), (1.0, 0.5, 2.0)), resolution=9)
+    cache.update(lin)
+    p = torch.rand(400, 3) * torch.tensor([2.0, 1.0, 2.0]) + torch.tensor([-1.0, -0.5, 0.0])
+    torch.testing.assert_close(cache(p), lin(p), atol=1e-5, rtol=0)         # exact for linear fields
+    sph = Sphere(0.5)
+    cache = SDFGridCache(BOX, resolution=33)
+    cache.update(sph)
+    q = torch.rand(400, 3) * 2 - 1
+    q = q[(q.norm(dim=-1) - 0.5).abs() < 0.3]
+    cell = 2.0 / 32
+    assert float((cache(q) - sph(q)).abs().max()) < cell ** 2 * 4          # O(h^2) curvature error
+    with pytest.raises(UserError):
+        SDFGridCache(BOX, resolution=1)
+
+
+@pytest.mark.parametrize("density", ["volsdf", "neus"])
+def test_cached_coarse_pass_places_fine_samples_at_the_zero_level_set(density):
+    sph = Sphere(0.5)
+    cache = SDFGridCache(BOX, resolution=24)
+    cache.update(sph)
+    torch.manual_seed(0)
+    o = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1) * 2.5
+    target = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1) * torch.rand(64, 1) * 0.4   # inside
+    d = torch.nn.functional.normalize(target - o, dim=-1)
+    colour = lambda p, v: (sph(p), torch.full((p.shape[0], 3), 0.25))  # noqa: E731
+    out = render_sdf_rays(sph, colour, o, d, BOX, density=density, alpha=500.0, beta=0.002, s=500.0,
+                          n_coarse=96, n_fine=16, coarse_fn=cache, padding=1e-4)
+    f_at_samples = sph(o[:, None, :] + out["t"][..., None] * d[:, None, :])
+    # uniform samples would put ~4% of them this close; the cache-guided ones hug the surface
+    assert (f_at_samples.abs() < 0.06).float().mean() > 0.9
+    assert out["opacity"].min() > 0.98
+    b = (o * d).sum(-1)
+    ref_t = -b - torch.sqrt(b ** 2 - (o.norm(dim=-1) ** 2 - 0.25))
+    err = (out["depth"] - ref_t).abs()                       # grazing rays see a thicker surface
+    assert float(err.median()) < 0.01 and float(err.max()) < 0.04
+    assert float(out["fine_samples_per_ray"]) == 16.0 and float(out["samples_per_ray"]) == 112.0
+
+
+def test_laplace_density_learnable_beta_and_tied_alpha():
+    dens = LaplaceDensity(0.1, None, learnable=True, beta_min=1e-3)
+    assert float(dens.beta.detach()) == pytest.approx(0.1) and float(dens.alpha.detach()) == pytest.approx(10.0)
+    sdf = torch.tensor([-1e3, -0.05, 0.0, 0.05, 1e3], dtype=torch.float32)
+    sigma = dens(sdf)
+    torch.testing.assert_close(sigma, volsdf_density(sdf, 10.0, 0.1))
+    (g,) = torch.autograd.grad(sigma.sum(), dens.rho)
+    assert torch.isfinite(g)
+    with torch.no_grad():
+        dens.rho.fill_(-50.0)                                  # beta at its floor: still finite
+    sigma = dens(sdf)
+    assert torch.isfinite(sigma).all() and float(sigma[0].detach()) == pytest.approx(1e3, rel=1e-4)
+    fixed = LaplaceDensity(0.05, 30.0, learnable=False)
+    assert len(list(fixed.parameters())) == 0 and float(fixed.alpha) == 30.0
+    with pytest.raises(ValueError):
+        LaplaceDensity(1e-4, None, beta_min=1e-3)
+    assert math.isfinite(float(fixed(sdf).sum()))
