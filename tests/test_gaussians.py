@@ -263,3 +263,14 @@ def test_sh_finite_at_the_poles_and_dc_round_trip():
     c = torch.zeros(16, 1, dtype=DT)
     c[1:] = 1.0
     assert abs(float(eval_sh(3, c, u).mean())) < 0.01
+
+
+def test_sh_basis_is_orthonormal_on_the_sphere():
+    """The degree-3 basis constants: E[Y_i Y_j] over uniform directions = delta_ij / (4 pi)."""
+    from l3d_app.models.sh import sh_basis
+
+    g = torch.Generator().manual_seed(1)
+    u = torch.nn.functional.normalize(torch.randn(400000, 3, generator=g, dtype=DT), dim=-1)
+    Y = sh_basis(3, u)
+    gram = Y.T @ Y / u.shape[0] * (4 * math.pi)
+    torch.testing.assert_close(gram, torch.eye(16, dtype=DT), atol=0.02, rtol=0)

@@ -26,6 +26,26 @@ def num_sh_coeffs(degree: int) -> int:
     return (int(degree) + 1) ** 2
 
 
+def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
+    """(..., K) real SH basis values up to ``degree`` (0-3) at unit directions (..., 3),
+    ``K = (degree + 1)^2``, in the 3DGS order and sign convention."""
+    k = num_sh_coeffs(degree)
+    x, y, z = dirs[..., 0], dirs[..., 1], dirs[..., 2]
+    terms = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        terms += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        terms += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2.0 * zz - xx - yy), SH_C2[3] * xz,
+                  SH_C2[4] * (xx - yy)]
+    if degree >= 3:
+        terms += [SH_C3[0] * y * (3.0 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4.0 * zz - xx - yy),
+                  SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy), SH_C3[4] * x * (4.0 * zz - xx - yy),
+                  SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3.0 * yy)]
+    assert len(terms) == k
+    return torch.stack(terms, -1)
+
+
 def eval_sh(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     """Evaluate SH up to ``degree`` (0-3).
 
@@ -34,29 +54,14 @@ def eval_sh(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tens
         dirs: (..., 3) unit viewing directions (camera -> point, world frame).
     Returns:
         (..., C) raw SH value (add 0.5 and clamp for a colour, see :func:`sh_to_color`).
+        One contraction of the basis with the coefficients, so the backward to the
+        coefficients is a single product (no per-coefficient slices).
     """
     k = num_sh_coeffs(degree)
     if coeffs.shape[-2] < k:
         raise ValueError(f"degree {degree} needs {k} SH coefficients, got {coeffs.shape[-2]}")
-    c = coeffs
-    out = SH_C0 * c[..., 0, :]
-    if degree < 1:
-        return out
-    x, y, z = (dirs[..., i:i + 1] for i in range(3))
-    out = out - SH_C1 * y * c[..., 1, :] + SH_C1 * z * c[..., 2, :] - SH_C1 * x * c[..., 3, :]
-    if degree < 2:
-        return out
-    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-    out = (out + SH_C2[0] * xy * c[..., 4, :] + SH_C2[1] * yz * c[..., 5, :]
-           + SH_C2[2] * (2.0 * zz - xx - yy) * c[..., 6, :] + SH_C2[3] * xz * c[..., 7, :]
-           + SH_C2[4] * (xx - yy) * c[..., 8, :])
-    if degree < 3:
-        return out
-    return (out + SH_C3[0] * y * (3.0 * xx - yy) * c[..., 9, :] + SH_C3[1] * xy * z * c[..., 10, :]
-            + SH_C3[2] * y * (4.0 * zz - xx - yy) * c[..., 11, :]
-            + SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * c[..., 12, :]
-            + SH_C3[4] * x * (4.0 * zz - xx - yy) * c[..., 13, :]
-            + SH_C3[5] * z * (xx - yy) * c[..., 14, :] + SH_C3[6] * x * (xx - 3.0 * yy) * c[..., 15, :])
+    basis = sh_basis(degree, dirs)
+    return (basis[..., None] * coeffs[..., :k, :]).sum(-2)
 
 
 def sh_to_color(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:

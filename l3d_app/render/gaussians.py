@@ -43,6 +43,7 @@ import torch
 
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.models.sh import sh_to_color
+from l3d_app.render.gaussians_project import ProjectFunction, quat_rotation
 from l3d_app.render.gaussians_composite import (ALPHA_MAX, ALPHA_MIN, T_MIN, CompositeFunction, bin_tiles,
                                                 composite_pairs, splat_pixel_pairs)
 
@@ -56,20 +57,11 @@ def quaternion_to_rotation(quats: torch.Tensor, eps: float = 1e-12) -> torch.Ten
     Quaternions are normalised; one with ``|q| <= eps`` (e.g. all zeros) is the identity,
     with finite (zero) gradients.
     """
-    sq = (quats * quats).sum(-1, keepdim=True)
-    ok = sq > eps * eps
-    q = quats * torch.rsqrt(sq.clamp_min(eps * eps))
-    ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
-    w, x, y, z = torch.where(ok, q, ident).unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(*quats.shape[:-1], 3, 3)
+    return quat_rotation(quats.reshape(-1, 4), eps)[3].reshape(*quats.shape[:-1], 3, 3)
 
 
 def project_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
-                      opacity: torch.Tensor, cams: Cameras, near: float = 0.01
+                      opacity: torch.Tensor, cams: Cameras, near: float = 0.01, custom_backward: bool = True
                       ) -> Dict[str, torch.Tensor]:
     """Project N Gaussians into B cameras.
 
@@ -77,11 +69,40 @@ def project_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: torc
         means: (N, 3) world positions; log_scales: (N, 3) log standard deviations (world
             units); quats: (N, 4) ``(w, x, y, z)``; opacity: (N,) in [0, 1].
         cams: B cameras (internal convention); near: near-plane depth (world units).
+        custom_backward: per camera one :class:`~l3d_app.render.gaussians_project.ProjectFunction`
+            (hand-written backward); False: the plain-autograd reference below (same values).
     Returns dict of
         means2d (B, N, 2) pixels (u right, v down); conic (B, N, 3) ``(A, B, C)`` of the
         inverse 2D covariance (px^-2); depth (B, N) camera z; radius (B, N) pixels (0 for
         culled splats, no gradient); visible (B, N) bool.
     """
+    W, H = cams.width, cams.height
+    if custom_backward:
+        outs = [ProjectFunction.apply(means, log_scales, quats, cams.R[b].to(means.dtype), cams.t[b].to(means.dtype),
+                                      *(float(v[b]) for v in (cams.fx, cams.fy, cams.cx, cams.cy)), W, H, near)
+                for b in range(cams.batch_size)]
+        means2d, conic, z, diag, lam_max, in_front = (torch.stack(x) for x in zip(*outs))
+        a, c = diag.unbind(-1)
+    else:
+        means2d, conic, z, a, c, lam_max, in_front = _project_autograd(means, log_scales, quats, cams, near)
+    u, v = means2d[..., 0], means2d[..., 1]
+    with torch.no_grad():
+        # exact cover: beyond r = sigma_max * sqrt(2 ln(255 o)) every alpha < 1/255;
+        # never more than 3 sigma... except for splats opaque enough to need up to 3.33.
+        reach = torch.sqrt(2.0 * torch.log((opacity * 255.0).clamp_min(1.0)))
+        radius = torch.sqrt(lam_max) * reach[None, :].expand_as(lam_max)
+        # the level-set ellipse's bounding box: half-widths reach * sqrt(Sigma_xx), sqrt(Sigma_yy)
+        ext = torch.stack([torch.sqrt(a), torch.sqrt(c)], -1) * reach[None, :, None]
+        on_screen = ((u + ext[..., 0] > 0) & (u - ext[..., 0] < W) & (v + ext[..., 1] > 0) & (v - ext[..., 1] < H))
+        visible = in_front & on_screen & (radius > 0) & torch.isfinite(radius)
+        radius = torch.where(visible, radius, torch.zeros_like(radius))
+        ext = torch.where(visible[..., None], ext, torch.zeros_like(ext))
+    return {"means2d": means2d, "conic": conic, "depth": z, "radius": radius, "extent": ext, "visible": visible}
+
+
+def _project_autograd(means, log_scales, quats, cams: Cameras, near: float):
+    """Plain-autograd projection (the reference of ProjectFunction): means2d (B, N, 2),
+    conic (B, N, 3), z, a, c (diagonal of Sigma_2D), lam_max, in_front (B, N)."""
     dt = means.dtype
     R, t = cams.R.to(dt), cams.t.to(dt)
     fx, fy, cx, cy = (v.to(dt)[:, None] for v in (cams.fx, cams.fy, cams.cx, cams.cy))
@@ -114,18 +135,7 @@ def project_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: torc
     conic = torch.stack([cn, -bn, an], -1) / (det_n * k)[..., None]
     mid = 0.5 * (an + cn)
     lam_max = k * (mid + torch.sqrt((mid * mid - det_n).clamp_min(0.0)))            # px^2
-    with torch.no_grad():
-        # exact cover: beyond r = sigma_max * sqrt(2 ln(255 o)) every alpha < 1/255;
-        # never more than 3 sigma... except for splats opaque enough to need up to 3.33.
-        reach = torch.sqrt(2.0 * torch.log((opacity * 255.0).clamp_min(1.0)))
-        radius = torch.sqrt(lam_max) * reach[None, :].expand_as(lam_max)
-        # the level-set ellipse's bounding box: half-widths reach * sqrt(Sigma_xx), sqrt(Sigma_yy)
-        ext = torch.stack([torch.sqrt(a), torch.sqrt(c)], -1) * reach[None, :, None]
-        on_screen = ((u + ext[..., 0] > 0) & (u - ext[..., 0] < W) & (v + ext[..., 1] > 0) & (v - ext[..., 1] < H))
-        visible = in_front & on_screen & (radius > 0) & torch.isfinite(radius)
-        radius = torch.where(visible, radius, torch.zeros_like(radius))
-        ext = torch.where(visible[..., None], ext, torch.zeros_like(ext))
-    return {"means2d": means2d, "conic": conic, "depth": z, "radius": radius, "extent": ext, "visible": visible}
+    return means2d, conic, z, a.detach(), c.detach(), lam_max.detach(), in_front
 
 
 def rasterize_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
@@ -147,8 +157,8 @@ def rasterize_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: to
         near: near-plane depth (world units); splats closer are culled.
         tile_size: tile side in pixels.
         max_elements: bound on the (pixel, splat) candidates evaluated at once (memory).
-        custom_backward: composite with the hand-written backward (False: plain autograd
-            through the same forward, the reference).
+        custom_backward: project and composite with the hand-written backwards (False:
+            plain autograd through the same forwards, the reference).
     Returns dict:
         color (B, H, W, 3) composited on the background; alpha (B, H, W) = 1 - final
         transmittance; depth (B, H, W) alpha-weighted camera depth ``sum_i w_i z_i``
@@ -163,7 +173,7 @@ def rasterize_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: to
     bg = torch.zeros(3, dtype=dt, device=means.device) if background is None else \
         torch.as_tensor(background, dtype=dt, device=means.device).reshape(3)
     opacity = torch.sigmoid(opacity_logits.reshape(N))
-    proj = project_gaussians(means, log_scales, quats, opacity, cams, near=near)
+    proj = project_gaussians(means, log_scales, quats, opacity, cams, near=near, custom_backward=custom_backward)
     means2d = proj["means2d"]
     if means2d.requires_grad:
         means2d.retain_grad()
@@ -178,13 +188,13 @@ def rasterize_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: to
             depths.append(torch.zeros(H, W, dtype=dt, device=means.device))
             pairs.append(0)
             continue
-        mv = means[vis]
-        d = mv - centres[b]
+        take = (lambda x: x) if vis.numel() == N else (lambda x: x[vis])  # noqa: E731  all visible: no gather
+        d = take(means) - centres[b]
         d = d * torch.rsqrt((d * d).sum(-1, keepdim=True).clamp_min(1e-24))
-        rgb = sh_to_color(sh_degree, sh_coeffs[vis], d)
-        m2, z, conic, op = means2d[b, vis], proj["depth"][b, vis], proj["conic"][b, vis], opacity[vis]
+        rgb = sh_to_color(sh_degree, take(sh_coeffs), d)
+        m2, z, conic, op = take(means2d[b]), take(proj["depth"][b]), take(proj["conic"][b]), take(opacity)
         with torch.no_grad():
-            sid, t_start, t_count = bin_tiles(m2, proj["extent"][b, vis], z, W, H, tile_size)
+            sid, t_start, t_count = bin_tiles(m2, take(proj["extent"][b]), z, W, H, tile_size)
             pix, spl = splat_pixel_pairs(sid, t_start, t_count, m2, conic, op, W, H, tile_size, max_elements)
         feats = torch.cat([rgb, z[:, None]], -1)
         fn = CompositeFunction.apply if custom_backward else composite_pairs
