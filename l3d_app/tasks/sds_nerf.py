@@ -21,9 +21,11 @@ Guidance: SDS (:func:`~l3d_app.losses.sds.sds_loss`) under the prompt embedding 
 view (:class:`~l3d_app.diffusion.view_prompts.ViewPrompts`: front / side / back blended by
 azimuth, overhead / bottom by elevation; on by default for Stable Diffusion, off for the
 built-in prior, whose vocabulary has no view words and whose shapes are flat).
-Regularisers (:mod:`l3d_app.losses.nerf_regularizers`): ``lambda_entropy`` x the mean
-binary entropy of the ray opacities and ``lambda_orient`` x the mean over rays of
-``sum_i w_i max(0, n_i . d)^2`` (Ref-NeRF orientation), applied on the steps that compute
+Regularisers (:mod:`l3d_app.losses.nerf_regularizers`), both scaled by the number of
+model-space pixels ``h w`` so that their weights are per pixel, like the SDS gradient (which
+acts on every model-space element): ``lambda_entropy`` x the mean binary entropy of the ray
+opacities and ``lambda_orient`` x the mean over rays of ``sum_i w_i max(0, n_i . d)^2``
+(Ref-NeRF orientation), the latter applied on the steps that compute
 normals (every shading but ``albedo``, which skips the normals' double backward: about half
 the cost of a step). An :class:`~l3d_app.render.occupancy.OccupancyGrid` (``occupancy.*``,
 started from the blob's extent) skips samples in empty cells.
@@ -265,7 +267,8 @@ def sds_nerf(cfg, ctx) -> dict:
                        float(cfg.t_max), generator=gen, on_nonfinite="flag")
         entropy = opacity_entropy(out["opacity"])
         orient = out["orient"].mean()
-        return {"loss": sds.loss + lam_e * entropy + lam_o * orient, "sds": sds.loss.detach(),
+        pixels = x.shape[-1] * x.shape[-2]       # regularisers on the per-pixel scale of the SDS gradient
+        return {"loss": sds.loss + pixels * (lam_e * entropy + lam_o * orient), "sds": sds.loss.detach(),
                 "entropy": entropy.detach(), "orient": orient.detach(),
                 "opacity": out["opacity"].mean().detach(), "latent": torch.tensor(float(latent)),
                 "shading": torch.tensor(float(SHADINGS.index(shading)))}
