@@ -18,7 +18,7 @@ from l3d_app.tasks.sds_mesh import FieldTextureRenderer, TextureField, score_fra
 from conftest import course_data
 
 SMALL = ("iters=3", "eval_every=3", "eval_views=2", "num_frames=2", "batch_views=2", "batch_frames=2",
-         "tensorboard=false", "threads=1")
+         "gif_size=32", "tensorboard=false", "threads=1")
 
 
 class _Linear(torch.nn.Module):

@@ -17,7 +17,7 @@ from l3d_app.losses.nerf_regularizers import density_normals, opacity_entropy, o
 from l3d_app.tasks.sds_nerf import BlobField, normals_as_latent, render_views, shading_sampler
 
 SMALL = ("iters=4", "eval_every=2", "eval_views=2", "num_frames=2", "n_samples=12", "render_size=16",
-         "tensorboard=false", "threads=1")
+         "gif_size=16", "tensorboard=false", "threads=1")
 
 
 # ----------------------------------------------------------------------------- view prompts
@@ -31,7 +31,7 @@ def test_view_weights_sum_to_one_and_pick_the_named_views():
     F, S, B, O, D = (eye[i] for i in range(5))
     expected = torch.stack([F, (F + S) / 2, S, (S + B) / 2, B, (S + B) / 2, S, F, S, O, D])
     assert torch.allclose(w, expected, atol=1e-6)
-    assert view_names(azim, elev) [:1] == ["front"] and view_names(torch.tensor([180.0]), torch.tensor([0.0])) == ["back"]
+    assert view_names(azim, elev)[:5] == ["front", "front", "side", "side", "back"]
 
 
 class _FakePrior(DiffusionPrior):
@@ -51,7 +51,8 @@ def test_view_prompt_embeddings_blend_linearly():
     views = ViewPrompts.build(prior, "a chair", view_dependent=True)
     assert views.prompts == tuple(f"a chair, {v} view" for v in VIEWS)
     emb = views.embedding(torch.tensor([0.0, 45.0, 180.0, 10.0]), torch.tensor([0.0, 0.0, 0.0, 80.0]))
-    front, side, back, over = (prior.embed_prompt(f"a chair, {v} view").cond[0] for v in ("front", "side", "back", "overhead"))
+    front, side, back, over = (prior.embed_prompt(f"a chair, {v} view").cond[0]
+                               for v in ("front", "side", "back", "overhead"))
     assert emb.cond.shape == (4, 3) and emb.uncond.shape == (1, 3)
     assert torch.allclose(emb.cond[0], front) and torch.allclose(emb.cond[2], back)
     assert torch.allclose(emb.cond[1], (front + side) / 2) and torch.allclose(emb.cond[3], over)

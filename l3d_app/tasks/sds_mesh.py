@@ -140,7 +140,7 @@ def sds_mesh(cfg, ctx) -> dict:
                                     antialias=int(cfg.antialias))
     dist_range, elev_range, fov_range = _ranges(cfg, "distance_range", "elevation_range", "fov_range")
     cams_360 = turntable(int(cfg.num_frames), float(cfg.eval_distance), float(cfg.eval_elevation),
-                         float(cfg.eval_fov), size, device=ctx.device)
+                         float(cfg.eval_fov), int(cfg.gif_size) or size, device=ctx.device)
     n_params = sum(p.numel() for p in field.parameters())
 
     def render_turntable(desc: str) -> torch.Tensor:
@@ -194,6 +194,7 @@ def sds_mesh(cfg, ctx) -> dict:
         "train_seconds": round(train_s, 4),
         "seconds_per_iter": round(train_s / max(result.step, 1), 5),
         "render_size": size,
+        "gif_size": int(cfg.gif_size) or size,
         "skipped_steps": result.skipped_steps,
         "history": result.history_rows(),
         "interrupted": result.interrupted,

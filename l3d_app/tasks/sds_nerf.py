@@ -274,7 +274,7 @@ def sds_nerf(cfg, ctx) -> dict:
                 "shading": torch.tensor(float(SHADINGS.index(shading)))}
 
     cams_360 = turntable(int(cfg.num_frames), float(cfg.eval_distance), float(cfg.eval_elevation),
-                         float(cfg.eval_fov), size, device=ctx.device)
+                         float(cfg.eval_fov), int(cfg.gif_size) or size, device=ctx.device)
 
     def render_turntable(cams: Cameras, shading: str) -> Dict[str, torch.Tensor]:
         return {k: v.detach() for k, v in render_views(field, cams, shading, chunk=int(cfg.chunk),
@@ -320,6 +320,7 @@ def sds_nerf(cfg, ctx) -> dict:
         "iters": result.step,
         "n_params": n_params,
         "render_size": size,
+        "gif_size": int(cfg.gif_size) or size,
         "train_seconds": round(train_s, 4),
         "seconds_per_iter": round(train_s / max(result.step, 1), 5),
         "skipped_steps": result.skipped_steps,
