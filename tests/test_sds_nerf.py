@@ -160,15 +160,17 @@ def test_shading_sampler_respects_probabilities_and_rejects_bad_names():
 
 
 # ----------------------------------------------------------------------------- the task
-def _needs_shipped_prior():
+def _needs_shipped_prior(space: str = "pixel"):
     from l3d_app.diffusion.builtin_prior import DEFAULT_CHECKPOINT
 
     if not DEFAULT_CHECKPOINT.exists():
         pytest.skip(f"built-in prior not shipped: {DEFAULT_CHECKPOINT}")
+    if space not in torch.load(DEFAULT_CHECKPOINT, map_location="cpu", weights_only=True)["spaces"]:
+        pytest.skip(f"the shipped built-in prior has no {space} space")
 
 
 def _run(compose, tmp_path, *overrides):
-    _needs_shipped_prior()
+    _needs_shipped_prior("latent" if "space=latent" in overrides else "pixel")
     run_task(compose("task=sds_nerf", *SMALL, *overrides), out_dir=tmp_path)
     return json.loads((tmp_path / "metrics.json").read_text())
 
