@@ -174,11 +174,13 @@ def test_sds_nerf_runs_on_the_tiny_pipeline_with_view_prompts_and_latent_steps(p
 
     cfg = compose("task=sds_nerf", "prior=stable_diffusion", f"prior.path={pipeline_dir}", "iters=2",
                   "latent_iter_ratio=0.5", "eval_every=2", "eval_views=1", "num_frames=2", "n_samples=8",
-                  "render_size=8", "gif_size=8", "guidance_scale=100", "tensorboard=false", "threads=1", "device=cpu")
+                  "render_size=8", "gif_size=8", "guidance_scale=100", "tensorboard=false", "threads=1", "device=cpu",
+                  "prompt=a hamburger")
     run_task(cfg, out_dir=tmp_path)
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert m["iters"] == 2 and m["latent_iters"] == 1 and m["skipped_steps"] == 0
-    assert m["view_prompts"]["back"] == "a red circle on white, back view"     # on for Stable Diffusion
+    assert m["view_prompts"]["back"] == "a hamburger, back view"     # on for Stable Diffusion
+    assert m["match_rate"] is None                  # free text: the built-in checker has no verdict
     assert (tmp_path / "sds_nerf.gif").exists()
 
 

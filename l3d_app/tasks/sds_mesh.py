@@ -22,7 +22,7 @@ seconds per iteration. Outputs: ``sds_mesh.gif`` (turntable, before | after),
 
 from __future__ import annotations
 
-from typing import Dict, Sequence
+from typing import Dict, Optional, Sequence
 
 import torch
 
@@ -91,19 +91,19 @@ def check_prompt_for_checker(prompt: str):
         return None
 
 
-def score_frames(frames: torch.Tensor, prompt: str) -> Dict[str, float]:
-    """Checker verdicts over frames (N, H, W, 3): match rate and per-slot rates (NaN if the
-    prompt is outside the checker's vocabulary)."""
+def score_frames(frames: torch.Tensor, prompt: str) -> Dict[str, Optional[float]]:
+    """Checker verdicts over frames (N, H, W, 3): match rate and per-slot rates (None if the
+    prompt is outside the checker's vocabulary, e.g. a free-text Stable Diffusion prompt)."""
     from l3d_app.metrics.prompt_match import check_image
 
     keys = ("match", "colour_ok", "shape_ok", "background_ok")
     if check_prompt_for_checker(prompt) is None:
-        return {k: float("nan") for k in keys}
+        return {k: None for k in keys}
     verdicts = [check_image(f, prompt) for f in frames]
     return {k: sum(bool(getattr(v, k)) for v in verdicts) / max(len(verdicts), 1) for k in keys}
 
 
-def score_metrics(score: Dict[str, float]) -> Dict[str, float]:
+def score_metrics(score: Dict[str, Optional[float]]) -> Dict[str, Optional[float]]:
     """:func:`score_frames` output as metrics.json keys."""
     return {"match_rate": score["match"], "colour_match_rate": score["colour_ok"],
             "shape_match_rate": score["shape_ok"], "background_match_rate": score["background_ok"]}
@@ -168,7 +168,8 @@ def sds_mesh(cfg, ctx) -> dict:
         idx = torch.linspace(0, len(cams_360) - 1, min(int(cfg.eval_views), len(cams_360))).round().long()
         frames = renderer(mesh, cams_360[idx.to(ctx.device)])["image"]
         ctx.logger.image("sds_mesh/front", frames[0], step)
-        return {"match_rate": score_frames(frames, prompt)["match"]}
+        rate = score_frames(frames, prompt)["match"]
+        return {} if rate is None else {"match_rate": rate}
 
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),

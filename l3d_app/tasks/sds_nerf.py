@@ -284,8 +284,8 @@ def sds_nerf(cfg, ctx) -> dict:
         idx = torch.linspace(0, len(cams_360) - 1, min(int(cfg.eval_views), len(cams_360))).round().long()
         out = render_turntable(cams_360[idx.to(ctx.device)], "albedo")
         ctx.logger.image("sds_nerf/front", out["image"][0].clamp(0, 1), step)
-        return {"match_rate": score_frames(out["image"].clamp(0, 1), prompt)["match"],
-                "opacity": float(out["opacity"].mean())}
+        rate = score_frames(out["image"].clamp(0, 1), prompt)["match"]
+        return {"opacity": float(out["opacity"].mean()), **({} if rate is None else {"match_rate": rate})}
 
     def after_step(step: int) -> None:
         if grid is not None:
