@@ -1,13 +1,17 @@
 """gs_train: 3D Gaussian splatting from posed images (built-in scene, truck, NeRF-synthetic).
 
-Initial splats: the truck's ``points/points_10000.npy`` (``init_points``) when present,
-else ``n_init`` points sampled uniformly in the data's scene box. Each step renders one
-random training view with :func:`~l3d_app.render.gaussians.rasterize_gaussians` on the
-data's background and minimises ``L1 + ssim_lambda * (1 - SSIM)`` with Adam (per-parameter
-learning rates, means' rate decayed exponentially). The SH degree rises by one every
-``sh_every`` steps up to ``sh_degree``. :class:`~l3d_app.models.gaussians.DensityControl`
-runs in the shared loop's ``after_step`` hook. ``time_budget`` > 0 stops after that many
-seconds of training steps (clean SIGINT stop of the shared loop), as in train_nerf.
+Initial splats: the truck's ``points/points_10000.npy`` when present, else ``n_init``
+points sampled uniformly in the data's scene box; their colours (``init_colors=views``)
+are the median of the training pixels they project to (the role of SfM point colours).
+Each step renders one random training view with
+:func:`~l3d_app.render.gaussians.rasterize_gaussians` on the data's background and
+minimises ``L1 + ssim_lambda * (1 - SSIM)`` with Adam (per-parameter learning rates as in
+3DGS, the means' rate times the scene extent and decayed exponentially). The SH degree
+rises by one every ``sh_every`` steps up to ``sh_degree``.
+:class:`~l3d_app.models.gaussians.DensityControl` runs in the shared loop's ``after_step``
+hook; its accumulators are checkpointed, so ``resume=true`` continues bitwise like an
+uninterrupted run (CPU). ``time_budget`` > 0 stops after that many seconds of training
+steps (clean SIGINT stop of the shared loop), as in train_nerf.
 Outputs: ``test_views.gif`` (prediction | ground truth per test view), ``progress.gif``
 (a test view over training, prediction over ground truth), ``point_cloud.ply`` (3DGS
 layout), ``metrics.json`` (psnr, ssim, n_gaussians, seconds, iters, history).
@@ -141,5 +145,6 @@ def gs_train(cfg, ctx) -> dict:
     save_gaussian_ply(ctx.path("point_cloud.ply"), model)
     metrics.update({"n_gaussians": model.num, "iters": result.step,
                     "train_seconds": round(stats["train_seconds"], 3),
+                    "steps_per_second": round(stats["steps"] / max(stats["train_seconds"], 1e-9), 3),
                     "history": result.history_rows()})
     return metrics
