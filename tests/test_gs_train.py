@@ -80,17 +80,17 @@ def test_gs_render_turntable_of_a_ply(compose, tmp_path):
 def test_gs_train_resume_is_bitwise_identical(compose, tmp_path, monkeypatch):
     """N steps in one go == N/2 steps, interrupted, then resumed (density accumulators included)."""
     torch.set_num_threads(1)
-    args = ("task=gs_train", "iters=60", "eval_every=30", "data.image_size=24", "data.n_train=8", "data.n_test=1",
-            "n_init=600", "densify.start=10", "densify.every=10", "densify.opacity_reset_every=40", "sh_every=20",
+    args = ("task=gs_train", "iters=36", "eval_every=18", "data.image_size=24", "data.n_train=8", "data.n_test=1",
+            "n_init=600", "densify.start=6", "densify.every=6", "densify.opacity_reset_every=24", "sh_every=12",
             "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
     run_task(compose(*args), out_dir=tmp_path / "full")
-    monkeypatch.setenv("L3D_STOP_AT_STEP", "25")          # mid-way between two densifications
+    monkeypatch.setenv("L3D_STOP_AT_STEP", "15")          # mid-way between two densifications
     with pytest.raises(RunInterrupted):
         run_task(compose(*args), out_dir=tmp_path / "cut")
     monkeypatch.delenv("L3D_STOP_AT_STEP")
     run_task(compose(*args, "resume=true"), out_dir=tmp_path / "cut")
     full, cut = (torch.load(tmp_path / d / "checkpoint.pt", weights_only=False) for d in ("full", "cut"))
-    assert full["step"] == cut["step"] == 60
+    assert full["step"] == cut["step"] == 36
     a, b = full["trainable"]["modules"]["gaussians"], cut["trainable"]["modules"]["gaussians"]
     assert a["means"].shape[0] != 600                    # densification did change the count
     for name in PARAM_NAMES:
