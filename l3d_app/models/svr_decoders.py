@@ -86,10 +86,10 @@ def mesh_points(meshes: List[Optional[Mesh]], num_points: int, generator) -> Lis
     return out
 
 
-def field_to_mesh(probabilities: torch.Tensor) -> Optional[Mesh]:
-    """Marching cubes at 0.5 of an (R, R, R) occupancy over :data:`BOUNDS` (None if empty)."""
+def field_to_mesh(probabilities: torch.Tensor, level: float = 0.5) -> Optional[Mesh]:
+    """Marching cubes at ``level`` of an (R, R, R) occupancy over :data:`BOUNDS` (None if empty)."""
     try:
-        return occupancy_to_mesh(probabilities.detach().float().cpu(), BOUNDS, level=0.5, colors="normal")
+        return occupancy_to_mesh(probabilities.detach().float().cpu(), BOUNDS, level=float(level), colors="normal")
     except UserError:  # nothing occupied
         return None
 
@@ -98,19 +98,21 @@ def field_to_mesh(probabilities: torch.Tensor) -> Optional[Mesh]:
 class VoxelDecoder(nn.Module):
     """Feature -> (B, R, R, R) occupancy logits by transposed 3D convolutions (k 4, stride 2)."""
 
-    def __init__(self, latent_dim: int, voxel_size: int = 32, width: int = 32, pos_weight: Optional[float] = None):
+    def __init__(self, latent_dim: int, voxel_size: int = 32, width: int = 32, pos_weight: Optional[float] = None,
+                 level: float = 0.5):
         super().__init__()
         R = int(voxel_size)
         ups = int(round(math.log2(R / 4))) if R >= 4 else -1
         if ups < 0 or 4 * 2 ** ups != R:
             raise UserError(f"svr_vox needs voxel_size = 4 * 2^k (8, 16, 32, 64), got {voxel_size}")
-        self.R, self.width, self.pos_weight = R, int(width), pos_weight
+        self.R, self.width, self.pos_weight, self.level = R, int(width), pos_weight, float(level)
         self.seed = nn.Sequential(nn.Linear(int(latent_dim), self.width * 64), nn.ReLU(inplace=True))
         layers: List[nn.Module] = []
         c = self.width
         for _ in range(ups):
             nxt = max(c // 2, 4)
-            layers += [nn.ConvTranspose3d(c, nxt, 4, 2, 1), nn.GroupNorm(1, nxt), nn.ReLU(inplace=True)]
+            # no normalisation: GroupNorm over the whole map made every object's output alike
+            layers += [nn.ConvTranspose3d(c, nxt, 4, 2, 1), nn.ReLU(inplace=True)]
             c = nxt
         layers.append(nn.Conv3d(c, 1, 1))
         self.up = nn.Sequential(*layers)
@@ -126,7 +128,7 @@ class VoxelDecoder(nn.Module):
         return {"loss": bce, "bce": bce}
 
     def shapes(self, feature) -> List[Optional[Mesh]]:
-        return [field_to_mesh(p) for p in torch.sigmoid(self(feature))]
+        return [field_to_mesh(p, self.level) for p in torch.sigmoid(self(feature))]
 
     def points(self, feature, num_points: int, generator=None) -> List[torch.Tensor]:
         return mesh_points(self.shapes(feature), num_points, generator)
@@ -247,9 +249,10 @@ class ImplicitDecoder(nn.Module):
 
 
 @MODELS.register("svr_vox")
-def svr_vox(latent_dim: int, geometry: Dict, width: int = 32, pos_weight: Optional[float] = None) -> VoxelDecoder:
-    """Voxel decoder at the data's ``voxel_size``."""
-    return VoxelDecoder(latent_dim, int(geometry["voxel_size"]), width, pos_weight)
+def svr_vox(latent_dim: int, geometry: Dict, width: int = 32, pos_weight: Optional[float] = None,
+            level: float = 0.5) -> VoxelDecoder:
+    """Voxel decoder at the data's ``voxel_size``; ``level``: the probability meshed by marching cubes."""
+    return VoxelDecoder(latent_dim, int(geometry["voxel_size"]), width, pos_weight, level)
 
 
 @MODELS.register("svr_point")

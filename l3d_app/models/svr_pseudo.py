@@ -49,7 +49,7 @@ def fixed_cameras(distance: float, fov: float, size: int) -> Cameras:
 
 
 def _up(cin: int, cout: int) -> nn.Sequential:
-    return nn.Sequential(nn.ConvTranspose2d(cin, cout, 4, 2, 1), nn.GroupNorm(1, cout), nn.ReLU(inplace=True))
+    return nn.Sequential(nn.ConvTranspose2d(cin, cout, 4, 2, 1), nn.ReLU(inplace=True))
 
 
 class PseudoRenderDecoder(nn.Module):
