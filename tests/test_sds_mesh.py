@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import json
-import math
-
 import pytest
 import torch
 
-from l3d_app.app import run_task
 from l3d_app.data.scenes import builtin_scene
 from l3d_app.errors import UserError
 from l3d_app.geometry.camera_paths import turntable
@@ -16,6 +12,7 @@ from l3d_app.geometry.mesh import Mesh
 from l3d_app.render.mesh_renderer import MeshRenderer
 from l3d_app.tasks.sds_mesh import FieldTextureRenderer, TextureField, score_frames
 from conftest import course_data
+from sds_task_runs import numbers_finite, run_metrics
 
 SMALL = ("iters=3", "eval_every=3", "eval_views=2", "num_frames=2", "batch_views=2", "batch_frames=2",
          "gif_size=32", "tensorboard=false", "threads=1")
@@ -67,29 +64,15 @@ def test_scores_of_known_images():
     assert all(v is None for v in score_frames(img, "a cow wearing a hat").values())   # no verdict
 
 
-def _needs_shipped_prior(space: str = "pixel"):
-    from l3d_app.diffusion.builtin_prior import DEFAULT_CHECKPOINT
-
-    if not DEFAULT_CHECKPOINT.exists():
-        pytest.skip(f"built-in prior not shipped: {DEFAULT_CHECKPOINT}")
-    if space not in torch.load(DEFAULT_CHECKPOINT, map_location="cpu", weights_only=True)["spaces"]:
-        pytest.skip(f"the shipped built-in prior has no {space} space")
-
-
 def _run(compose, tmp_path, *overrides):
-    _needs_shipped_prior("latent" if "space=latent" in overrides else "pixel")
-    run_task(compose("task=sds_mesh", *SMALL, *overrides), out_dir=tmp_path)
-    return json.loads((tmp_path / "metrics.json").read_text())
+    return run_metrics(compose, tmp_path, "task=sds_mesh", *SMALL, *overrides)
 
-
-def _finite(m):
-    return all(math.isfinite(v) for k, v in m.items() if isinstance(v, (int, float)) and not isinstance(v, bool))
 
 
 def test_sds_mesh_tiny_run_writes_outputs_with_finite_metrics(compose, tmp_path):
     m = _run(compose, tmp_path)
     assert (tmp_path / "sds_mesh.gif").exists() and (tmp_path / "after.png").exists()
-    assert m["iters"] == 3 and m["render_size"] == 32 and _finite(m)
+    assert m["iters"] == 3 and m["render_size"] == 32 and numbers_finite(m)
     for key in ("match_rate", "match_rate_before", "colour_match_rate", "seconds", "seconds_per_iter", "n_params"):
         assert key in m
     assert m["match_rate_before"] == 0.0        # the grey start is no red square
@@ -98,7 +81,7 @@ def test_sds_mesh_tiny_run_writes_outputs_with_finite_metrics(compose, tmp_path)
 def test_sds_mesh_on_the_course_cow(compose, tmp_path):
     cow = course_data("cow", "cow.obj")
     m = _run(compose, tmp_path, "data=mesh", f"data.path={cow}", "iters=2", "prompt=a blue square on white")
-    assert m["iters"] == 2 and _finite(m)
+    assert m["iters"] == 2 and numbers_finite(m)
 
 
 def test_sds_mesh_needs_a_mesh_and_a_readable_prompt(compose, tmp_path):

@@ -2,19 +2,18 @@
 
 from __future__ import annotations
 
-import json
 import math
 
 import pytest
 import torch
 
-from l3d_app.app import run_task
 from l3d_app.diffusion.prior import DiffusionPrior, PromptEmbedding
 from l3d_app.diffusion.view_prompts import VIEWS, ViewPrompts, sample_orbit_cameras, view_names, view_weights
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.losses.nerf_regularizers import density_normals, opacity_entropy, orientation_penalty
 from l3d_app.tasks.sds_nerf import BlobField, normals_as_latent, render_views, shading_sampler
+from sds_task_runs import numbers_finite, run_metrics
 
 SMALL = ("iters=4", "eval_every=2", "eval_views=2", "num_frames=2", "n_samples=12", "render_size=16",
          "gif_size=16", "tensorboard=false", "threads=1")
@@ -160,29 +159,15 @@ def test_shading_sampler_respects_probabilities_and_rejects_bad_names():
 
 
 # ----------------------------------------------------------------------------- the task
-def _needs_shipped_prior(space: str = "pixel"):
-    from l3d_app.diffusion.builtin_prior import DEFAULT_CHECKPOINT
-
-    if not DEFAULT_CHECKPOINT.exists():
-        pytest.skip(f"built-in prior not shipped: {DEFAULT_CHECKPOINT}")
-    if space not in torch.load(DEFAULT_CHECKPOINT, map_location="cpu", weights_only=True)["spaces"]:
-        pytest.skip(f"the shipped built-in prior has no {space} space")
-
-
 def _run(compose, tmp_path, *overrides):
-    _needs_shipped_prior("latent" if "space=latent" in overrides else "pixel")
-    run_task(compose("task=sds_nerf", *SMALL, *overrides), out_dir=tmp_path)
-    return json.loads((tmp_path / "metrics.json").read_text())
+    return run_metrics(compose, tmp_path, "task=sds_nerf", *SMALL, *overrides)
 
-
-def _finite(m):
-    return all(math.isfinite(v) for k, v in m.items() if isinstance(v, (int, float)) and not isinstance(v, bool))
 
 
 def test_sds_nerf_tiny_run_writes_outputs_with_finite_metrics(compose, tmp_path):
     m = _run(compose, tmp_path)
     assert (tmp_path / "sds_nerf.gif").exists() and (tmp_path / "views.png").exists()
-    assert m["iters"] == 4 and m["latent_iters"] == 0 and _finite(m)
+    assert m["iters"] == 4 and m["latent_iters"] == 0 and numbers_finite(m)
     for key in ("match_rate", "opacity", "opacity_entropy", "orientation", "seconds", "seconds_per_iter"):
         assert key in m
     assert m["view_prompts"]["front"] == "a red circle on white"      # built-in prior: no view words
@@ -191,7 +176,7 @@ def test_sds_nerf_tiny_run_writes_outputs_with_finite_metrics(compose, tmp_path)
 
 def test_sds_nerf_latent_iterations_with_the_latent_prior(compose, tmp_path):
     m = _run(compose, tmp_path, "space=latent", "latent_iter_ratio=0.5")
-    assert m["latent_iters"] == 2 and m["iters"] == 4 and _finite(m)
+    assert m["latent_iters"] == 2 and m["iters"] == 4 and numbers_finite(m)
 
 
 def test_sds_nerf_rejects_bad_knobs(compose, tmp_path):
