@@ -96,6 +96,9 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
     sidp = torch.cat([sid, sid.new_full((1,), M)])
     ly, lx = torch.meshgrid(torch.arange(tile, device=dev), torch.arange(tile, device=dev), indexing="ij")
     ly, lx = ly.reshape(-1), lx.reshape(-1)
+    # q = d^T conic d as a quadratic in the tile-local pixel centre (lx, ly): the candidates of
+    # a group of tiles are ONE batched matmul of per-pixel monomials with per-splat coefficients
+    mono = torch.stack([torch.ones(P, device=dev), lx, ly, lx * lx, lx * ly, ly * ly], 1).to(dt)   # (P, 6)
     tiles = torch.nonzero(tile_count).reshape(-1)
     pix_out, spl_out = [sid.new_zeros(0)], [sid.new_zeros(0)]
     if tiles.numel():
@@ -109,19 +112,26 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
                 t = tl[g0:g0 + per]
                 idx = torch.where(slot < tile_count[t][:, None], tile_start[t][:, None] + slot, sid.numel())
                 s = sidp[idx].reshape(-1)                                              # (G*L,)
-                a = attr.index_select(0, s).reshape(-1, 1, L, 6)                       # (G, 1, L, 6)
-                col = (t % ntx)[:, None] * tile + lx                                   # (G, P)
-                row = (t // ntx)[:, None] * tile + ly
-                dx = (col.to(dt) + 0.5)[:, :, None] - a[..., 0]                        # (G, P, L)
-                dy = (row.to(dt) + 0.5)[:, :, None] - a[..., 1]
-                power = (dx * dx) * a[..., 2] + (dy * dy) * a[..., 4]
-                power = torch.addcmul(power, dx * dy, a[..., 3], value=2.0)
-                keep = torch.exp(power * -0.5).mul_(a[..., 5]) >= ALPHA_MIN
-                keep &= ((col < width) & (row < height))[:, :, None]
-                f = torch.nonzero(keep.reshape(-1)).reshape(-1)
+                a = attr.index_select(0, s).reshape(-1, L, 6)                          # (G, L, 6)
+                x0, y0 = (t % ntx) * tile, torch.div(t, ntx, rounding_mode="floor") * tile
+                ox = a[..., 0] - (x0.to(dt) + 0.5)[:, None]                            # splat centre, tile-local
+                oy = a[..., 1] - (y0.to(dt) + 0.5)[:, None]
+                A, B, C = a[..., 2], a[..., 3], a[..., 4]
+                coef = torch.stack([A * ox * ox + 2 * B * ox * oy + C * oy * oy, -2 * (A * ox + B * oy),
+                                    -2 * (B * ox + C * oy), A, 2 * B, C], 1)            # (G, 6, L)
+                q = torch.matmul(mono, coef)                                           # (G, P, L)
+                # alpha = o exp(-q/2) >= 1/255  <=>  q <= 2 ln(255 o)   (padding: o = 0, never)
+                thr = 2.0 * torch.log(a[..., 5] * 255.0)
+                f = torch.nonzero((q <= thr[:, None, :]).reshape(-1)).reshape(-1)
                 gp = torch.div(f, L, rounding_mode="floor")                            # (tile, pixel)
-                spl_out.append(s[torch.div(gp, P, rounding_mode="floor") * L + (f - gp * L)])
-                pix_out.append((row * width + col).reshape(-1)[gp])
+                col, row = x0[:, None] + lx, y0[:, None] + ly                          # (G, P)
+                pix = torch.where((col < width) & (row < height), row * width + col, -1).reshape(-1)[gp]
+                sp = s[torch.div(gp, P, rounding_mode="floor") * L + (f - gp * L)]
+                if width % tile or height % tile:                                    # pixels past the border
+                    inside = torch.nonzero(pix >= 0).reshape(-1)
+                    pix, sp = pix[inside], sp[inside]
+                spl_out.append(sp)
+                pix_out.append(pix)
     return torch.cat(pix_out), torch.cat(spl_out)
 
 
@@ -143,7 +153,9 @@ def _pair_terms(pix, spl, attr, centres):
     d = centres.index_select(0, pix) - a[:, :2]
     dx, dy = d[:, 0], d[:, 1]
     power = torch.addcmul(dx * dx * a[:, 2] + dy * dy * a[:, 4], dx * dy, a[:, 3], value=2.0)
-    return (torch.exp(power * -0.5) * a[:, 5]).clamp(max=ALPHA_MAX), dx, dy, a
+    alpha = (torch.exp(power * -0.5) * a[:, 5]).clamp(max=ALPHA_MAX)
+    # the pair test rounds differently: a pair at the 1/255 border contributes nothing, as in the reference
+    return torch.where(alpha >= ALPHA_MIN, alpha, torch.zeros_like(alpha)), dx, dy, a
 
 
 def _transmittance(alpha: torch.Tensor, seg: torch.Tensor, last: torch.Tensor):
