@@ -73,6 +73,8 @@ def test_orbit_cameras_look_at_the_origin_from_the_sampled_angles():
     assert torch.allclose(cams.R[:, 2], -torch.nn.functional.normalize(c, dim=-1), atol=1e-5)  # optical axis to 0
     with pytest.raises(UserError):
         sample_orbit_cameras(2, 8, g, elevation=(-10.0, 95.0))
+    with pytest.raises(UserError):
+        sample_orbit_cameras(2, 8, g, distance=(3.0,))
 
 
 # ----------------------------------------------------------------------------- regularisers

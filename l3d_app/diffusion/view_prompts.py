@@ -109,6 +109,8 @@ def sample_orbit_cameras(n: int, image_size: int, generator: torch.Generator,
     distance in world units, angles in degrees. Returns (cameras, azimuth (n,), elevation (n,)).
     """
     def draw(lo_hi, name):
+        if len(lo_hi) != 2:
+            raise UserError(f"{name} must be a [lo, hi] range, got {list(lo_hi)}")
         lo, hi = (float(v) for v in lo_hi)
         if hi < lo:
             raise UserError(f"{name} range must be [lo, hi] with lo <= hi, got {list(lo_hi)}")

@@ -22,16 +22,18 @@ seconds per iteration. Outputs: ``sds_mesh.gif`` (turntable, before | after),
 
 from __future__ import annotations
 
-from typing import Dict, Optional, Sequence
+from typing import Dict, Optional
 
 import torch
 
+from l3d_app.data.prompt_images import parse_prompt
 from l3d_app.diffusion.registry import PRIORS
 from l3d_app.diffusion.view_prompts import sample_orbit_cameras
 from l3d_app.errors import UserError
 from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.losses.sds import rgb_to_model_space, sds_loss
+from l3d_app.metrics.prompt_match import check_image
 from l3d_app.models.encodings import HarmonicEncoding
 from l3d_app.registry import DATASETS, TASKS
 from l3d_app.render.mesh_renderer import MeshRenderer
@@ -83,8 +85,6 @@ class FieldTextureRenderer(MeshRenderer):
 
 def check_prompt_for_checker(prompt: str):
     """The prompt's (colour, shape, background) slots, or None when the checker cannot read it."""
-    from l3d_app.data.prompt_images import parse_prompt
-
     try:
         return parse_prompt(prompt)
     except UserError:
@@ -94,8 +94,6 @@ def check_prompt_for_checker(prompt: str):
 def score_frames(frames: torch.Tensor, prompt: str) -> Dict[str, Optional[float]]:
     """Checker verdicts over frames (N, H, W, 3): match rate and per-slot rates (None if the
     prompt is outside the checker's vocabulary, e.g. a free-text Stable Diffusion prompt)."""
-    from l3d_app.metrics.prompt_match import check_image
-
     keys = ("match", "colour_ok", "shape_ok", "background_ok")
     if check_prompt_for_checker(prompt) is None:
         return {k: None for k in keys}
@@ -114,16 +112,6 @@ def load_prior(cfg, device):
     return PRIORS.build(cfg.prior, device=device)
 
 
-def _ranges(cfg, *keys: str) -> Sequence:
-    out = []
-    for key in keys:
-        value = list(cfg[key])
-        if len(value) != 2:
-            raise UserError(f"{key} must be a [lo, hi] range, got {value}")
-        out.append(value)
-    return out
-
-
 @TASKS.register("sds_mesh")
 def sds_mesh(cfg, ctx) -> dict:
     """Optimise the texture field with SDS; score turntables before and after; write gif/metrics."""
@@ -138,7 +126,7 @@ def sds_mesh(cfg, ctx) -> dict:
     field = TextureField(int(cfg.field.n_frequencies), int(cfg.field.hidden), int(cfg.field.layers)).to(ctx.device)
     renderer = FieldTextureRenderer(field, shading=str(cfg.shading), background=list(cfg.background),
                                     antialias=int(cfg.antialias))
-    dist_range, elev_range, fov_range = _ranges(cfg, "distance_range", "elevation_range", "fov_range")
+    dist_range, elev_range, fov_range = (list(cfg[k]) for k in ("distance_range", "elevation_range", "fov_range"))
     cams_360 = turntable(int(cfg.num_frames), float(cfg.eval_distance), float(cfg.eval_elevation),
                          float(cfg.eval_fov), int(cfg.gif_size) or size, device=ctx.device)
     n_params = sum(p.numel() for p in field.parameters())
