@@ -29,6 +29,7 @@ from l3d_app.diffusion.registry import PRIORS
 from l3d_app.diffusion.schedule import alphas_cumprod
 from l3d_app.diffusion.unet import TinyUNet
 from l3d_app.errors import UserError
+from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.paths import resolve_path
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "assets" / "builtin_prior.pt"
@@ -137,12 +138,25 @@ class BuiltinPrior(DiffusionPrior):
 
 
 def export_state(priors: Dict[str, BuiltinPrior], meta: Dict[str, Any]) -> Dict[str, Any]:
-    """A compact (float16) checkpoint of one or both spaces, plus provenance ``meta``."""
-    return {"format": FORMAT, "meta": dict(meta),
-            "spaces": {space: {"config": p.config,
+    """A compact (float16) checkpoint of one or both spaces, each with provenance ``meta``."""
+    return {"format": FORMAT,
+            "spaces": {space: {"config": p.config, "meta": dict(meta),
                                "state": {k: (v.half() if v.is_floating_point() and k != "alphas_cumprod" else v)
                                          for k, v in p.state_dict().items()}}
                        for space, p in priors.items()}}
+
+
+def save_prior_checkpoint(path: os.PathLike, state: Dict[str, Any], merge: bool = False) -> None:
+    """Write ``state`` (from :func:`export_state`) atomically; with ``merge`` the spaces that
+    ``state`` lacks are kept from an existing checkpoint at ``path``."""
+    path = Path(path)
+    if merge and path.exists():
+        old = torch.load(path, map_location="cpu", weights_only=True)
+        if isinstance(old, dict) and old.get("format") == FORMAT:
+            state = {"format": FORMAT, "spaces": {**old["spaces"], **state["spaces"]}}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
 
 
 def load_builtin_prior(space: str = "pixel", checkpoint: Optional[os.PathLike] = None,

@@ -5,7 +5,9 @@ The variable ``x`` (1, *latent_shape) lives in the prior's model space: pixels i
 decoded by the prior's decoder). It starts at the encoding of a flat grey image plus
 ``init_noise`` Gaussian noise. Each step averages the SDS gradient
 (:func:`l3d_app.losses.sds.sds_loss`: t in [t_min, t_max], w(t) = 1 - abar_t, CFG scale
-``guidance_scale``) over ``batch`` draws of (t, noise) and takes an Adam step; a
+``guidance_scale``; with ``t_max_end`` set, t_max falls linearly to it over the run) over ``batch`` draws of (t, noise) and takes an Adam step (in pixel
+space the image is first rolled by a random offset of up to ``shift`` pixels, which keeps the
+prior's 2 x 2 patch grid from printing a checkerboard); a
 non-finite gradient is never applied (the shared loop skips the step and counts it).
 
 Outputs: ``final.png`` (native size and ``final_x8.png`` enlarged), ``progress.gif``
@@ -70,6 +72,10 @@ def sds_image(cfg, ctx) -> dict:
     sds = SDSLoss(float(cfg.guidance_scale), float(cfg.t_min), float(cfg.t_max), str(cfg.weighting),
                   on_nonfinite="flag")
     B = int(cfg.batch)
+    t_top = float(cfg.t_max)
+    t_end = None if cfg.get("t_max_end") is None else float(cfg.t_max_end)
+    if t_end is not None and not float(cfg.t_min) <= t_end <= t_top:
+        raise UserError(f"need t_min <= t_max_end <= t_max, got t_max_end={t_end}")
     last: Dict[str, float] = {}
     frames: List[torch.Tensor] = []
 
@@ -77,8 +83,16 @@ def sds_image(cfg, ctx) -> dict:
         with torch.no_grad():
             return prior.decode(holder["x"].detach()).float().clamp(0, 1)
 
+    shift = int(cfg.shift) if not prior.is_latent else 0
+
     def step(i: int) -> Dict[str, torch.Tensor]:
         x = holder["x"].expand(B, *holder["x"].shape[1:])
+        if shift > 0:  # random roll: the prior's patch grid never lines up with the same pixels
+            dy, dx = torch.randint(-shift, shift + 1, (2,), generator=ctx.generator,
+                                   device=ctx.generator.device).tolist()
+            x = torch.roll(x, (dy, dx), dims=(2, 3))
+        if t_end is not None:  # anneal the top of the t range linearly: coarse first, details last
+            sds.t_max = t_top + (t_end - t_top) * i / max(1, int(cfg.iters) - 1)
         out = sds(prior, x, emb, ctx.generator)
         last.update(grad_norm=out.grad_norm, t=float(out.t.float().mean()))
         return {"loss": out.loss / B, "grad_norm": torch.tensor(out.grad_norm),

@@ -1,7 +1,7 @@
 """train_prior: train the built-in diffusion prior(s) on procedural prompt images.
 
 Each step draws a fresh batch of ``batch_size`` images of random prompts
-(:mod:`l3d_app.data.prompt_images`) and takes one AdamW step on the DDPM epsilon-MSE of
+(:mod:`l3d_app.data.prompt_images`) and takes one AdamW step on the DDPM v- (or eps-) MSE of
 the pixel prior and/or the latent prior (``space`` = pixel | latent | both), with
 classifier-free-guidance slot dropout. The latent prior first trains its autoencoder for
 ``ae_iters`` steps (reconstruction MSE), fixes the latent scale (1 / std of the latents of
@@ -13,25 +13,26 @@ steps, guidance ``eval_guidance``) of ``eval_prompts`` fully specified prompts p
 scored by the independent checker (:mod:`l3d_app.metrics.prompt_match`) as
 ``sample_match_<space>``. Runs through the shared training loop (checkpoints, resume,
 NaN guard). Outputs: ``builtin_prior.pt`` (float16 weights, loadable with
-``prior.checkpoint=<run dir>/builtin_prior.pt``; with ``export=PATH`` also copied there),
+``prior.checkpoint=<run dir>/builtin_prior.pt``; with ``export=PATH`` also written there,
+keeping the other space of an existing checkpoint at PATH), with the command line, seed and
+final evaluation recorded inside per space;
 ``samples_<space>.png``, ``metrics.json``.
 """
 
 from __future__ import annotations
 
 import copy
-import shutil
+import sys
 from typing import Dict
 
 import torch
 
 from l3d_app.data.prompt_images import prompt_batch
-from l3d_app.diffusion.builtin_prior import SPACES, BuiltinPrior, export_state
+from l3d_app.diffusion.builtin_prior import SPACES, BuiltinPrior, export_state, save_prior_checkpoint
 from l3d_app.diffusion.sampling import ddim_sample
 from l3d_app.errors import UserError
 from l3d_app.metrics.prompt_match import match_rate
 from l3d_app.registry import TASKS
-from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.paths import resolve_path
 from l3d_app.runtime.training import Trainable, train
@@ -120,16 +121,14 @@ def train_prior(cfg, ctx) -> dict:
         grid = image_grid(imgs, cols=max(1, int(cfg.eval_prompts) // 3))
         save_png(ctx.path(f"samples_{s}.png"), grid)
         ctx.logger.image(f"samples/{s}", grid, result.step)
-    meta = {"command": f"python main.py task=train_prior seed={cfg.seed} iters={cfg.iters} space={cfg.space}",
-            "seed": int(cfg.seed), "iters": result.step, "batch_size": int(cfg.batch_size)}
+    meta = {"command": "python main.py " + " ".join(sys.argv[1:]), "seed": int(cfg.seed),
+            "iters": result.step, "batch_size": int(cfg.batch_size),
+            **{k: round(float(v), 4) for k, v in result.metrics.items()}}
     state = export_state({s: ema[s].cpu() for s in spaces}, meta)
     out_path = ctx.path("builtin_prior.pt")
-    with atomic_path(out_path) as tmp:
-        torch.save(state, tmp)
+    save_prior_checkpoint(out_path, state)
     if cfg.get("export"):
-        target = resolve_path(str(cfg.export))
-        target.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(out_path, target)
+        save_prior_checkpoint(resolve_path(str(cfg.export)), state, merge=True)
     metrics = {k: round(float(v), 4) for k, v in result.metrics.items() if k != "seconds"}
     metrics.update({
         "iters": result.step,
