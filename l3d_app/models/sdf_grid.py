@@ -115,7 +115,7 @@ class SDFGridField(torch.nn.Module):
 
     def __init__(self, scene_box=None, n_levels: int = 8, n_features: int = 2, base_resolution: int = 16,
                  max_resolution: int = 128, log2_hashmap_size: int = 17, init_scale: float = 1e-4,
-                 hidden: int = 64, n_layers: int = 1, sdf_features: int = 15, radius: float = 0.5,
+                 hidden: int = 64, n_layers: int = 1, sdf_features: int = 15, radius: float = 0.85,
                  color_hidden: int = 64, color_layers: int = 2, use_normals: bool = True,
                  use_viewdirs: bool = True, gradient: str = "analytic", fd_step: float = 0.005,
                  softplus_beta: float = 100.0):
