@@ -4,11 +4,14 @@ The fast path of :func:`l3d_app.render.gaussians.rasterize_gaussians`:
 
 1. :func:`bin_tiles` enumerates every (splat, tile) overlap of the splats' bounding boxes
    and sorts them with ONE argsort of the int64 key ``tile * M + depth_rank``.
-2. :func:`splat_pixel_pairs` (no autograd) evaluates, per tile, all its pixels against all
-   its splats in padded batches (tiles grouped by how many splats they hold, powers of two,
-   so padding stays below 2x; at most ``max_elements`` candidates live at once) and keeps
-   only the (pixel, splat) pairs with ``alpha >= 1/255``: a flat list in which each
-   pixel's pairs form one contiguous run sorted by depth. Every later step works on these K pairs, never on ``pairs x pixels``.
+2. :func:`splat_pixel_pairs` (no autograd) tests, per tile, all its pixels against all its
+   splats in padded batches (tiles grouped by how many splats they hold, powers of two, so
+   padding stays below 2x; at most ``max_elements`` candidates live at once): the quadratic
+   form ``d^T conic d`` is one batched matmul of the pixels' monomials ``(1, x, y, x^2, xy,
+   y^2)`` with per-splat coefficients, compared with ``2 ln(255 opacity)``. It keeps only
+   the (pixel, splat) pairs with ``alpha >= 1/255``: a flat list in which each pixel's pairs
+   form one contiguous run sorted by depth. Every later step works on these K pairs, never
+   on ``pairs x pixels``.
 3. :class:`CompositeFunction` composites them front to back with a hand-written backward:
    transmittance is an exclusive segmented cumsum of ``log(1 - alpha)`` (float64, one
    global cumsum minus each pixel's start), early termination drops a pixel's pairs from
