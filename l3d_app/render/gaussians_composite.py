@@ -3,7 +3,8 @@
 The fast path of :func:`l3d_app.render.gaussians.rasterize_gaussians`:
 
 1. :func:`bin_tiles` enumerates every (splat, tile) overlap of the splats' bounding boxes
-   and sorts them with ONE argsort of the int64 key ``tile * M + depth_rank``.
+   and sorts them with one argsort of the int64 key ``tile * M + depth_rank`` (the ranks
+   come from an argsort of the M depths).
 2. :func:`splat_pixel_pairs` (no autograd) tests, per tile, all its pixels against all its
    splats in padded batches (tiles grouped by how many splats they hold, powers of two, so
    padding stays below 2x; at most ``max_elements`` candidates live at once): the quadratic
