@@ -5,7 +5,9 @@ Model: the fast radiance field of ``train_nerf`` (``model=grid_field``: multi-re
 ``exp(blob_density * exp(-|x|^2 / (2 blob_radius^2)))`` (for the exp activation this adds the
 blob to the raw density, as DreamFusion does), so optimisation starts from a soft ball.
 
-Each step renders ``batch_views`` random orbit cameras (volume rendering along ray-box
+Each step renders ``batch_views`` random orbit cameras at ``render_size`` pixels (0: the
+prior's image size, at most 64; renders are resized to the prior's size before encoding),
+by volume rendering along ray-box
 segments, stratified samples, :func:`~l3d_app.render.radiance.render_field_rays`) with a
 shading drawn at random (``shading_probs``):
 
@@ -230,7 +232,7 @@ def sds_nerf(cfg, ctx) -> dict:
         if latent_iters > 0 and prior.latent_shape[0] != 4:
             raise UserError(f"latent_iter_ratio > 0 needs a 4-channel latent prior, this one has "
                             f"{prior.latent_shape[0]} channels; set latent_iter_ratio=0")
-    size = int(cfg.render_size) if int(cfg.render_size) > 0 else int(prior.image_size)
+    size = int(cfg.render_size) if int(cfg.render_size) > 0 else min(int(prior.image_size), 64)
     base = MODELS.build(cfg.model, scene_box=[list(SCENE_BOX[0]), list(SCENE_BOX[1])])
     field = BlobField(base, float(cfg.blob_density), float(cfg.blob_radius)).to(ctx.device)
     n_params = sum(p.numel() for p in field.parameters())
