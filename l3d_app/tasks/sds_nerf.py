@@ -6,10 +6,10 @@ Model: the fast radiance field of ``train_nerf`` (``model=grid_field``: multi-re
 blob to the raw density, as DreamFusion does), so optimisation starts from a soft ball.
 
 Each step renders ``batch_views`` random orbit cameras at ``render_size`` pixels (0: the
-prior's image size, at most 64; renders are resized to the prior's size before encoding),
-by volume rendering along ray-box
-segments, stratified samples, :func:`~l3d_app.render.radiance.render_field_rays`) with a
-shading drawn at random (``shading_probs``):
+prior's image size, at most 64; renders are resized to the prior's size before encoding)
+by volume rendering (ray-box segments, stratified samples,
+:func:`~l3d_app.render.radiance.render_field_rays`), with a shading drawn at random
+(``shading_probs``):
 
 * ``albedo``: the field's colour;
 * ``lambertian``: ``albedo * (ambient + (1 - ambient) max(0, n . l))``;
