@@ -89,3 +89,19 @@ def test_sds_mesh_needs_a_mesh_and_a_readable_prompt(compose, tmp_path):
         _run(compose, tmp_path, "prompt=a cow wearing a hat")
     with pytest.raises(UserError):
         _run(compose, tmp_path, "batch_views=0")
+
+
+def test_sds_mesh_interrupt_and_resume_equals_an_uninterrupted_run(compose, tmp_path, monkeypatch):
+    from l3d_app.app import RunInterrupted
+
+    whole, parts = tmp_path / "whole", tmp_path / "parts"
+    _run(compose, whole, "iters=4")
+    monkeypatch.setenv("L3D_STOP_AT_STEP", "2")
+    with pytest.raises(RunInterrupted):
+        _run(compose, parts, "iters=4")
+    monkeypatch.delenv("L3D_STOP_AT_STEP")
+    m = _run(compose, parts, "iters=4", "resume=true")
+    assert m["iters"] == 4
+    a, b = (torch.load(d / "checkpoint.pt", weights_only=False)["trainable"]["modules"]["texture"]
+            for d in (whole, parts))
+    assert all(torch.equal(a[k], b[k]) for k in a)
