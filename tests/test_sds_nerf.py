@@ -188,3 +188,20 @@ def test_sds_nerf_rejects_bad_knobs(compose, tmp_path):
         _run(compose, tmp_path, "shading_probs.albedo=-1")
     with pytest.raises(UserError):   # the built-in vocabulary has no view words
         _run(compose, tmp_path, "view_dependent=true")
+
+
+def test_sds_nerf_interrupt_and_resume_equals_an_uninterrupted_run(compose, tmp_path, monkeypatch):
+    from l3d_app.app import RunInterrupted
+
+    whole, parts = tmp_path / "whole", tmp_path / "parts"
+    small = ("iters=4", "occupancy.update_every=2")          # the grid changes across the cut
+    _run(compose, whole, *small)
+    monkeypatch.setenv("L3D_STOP_AT_STEP", "2")
+    with pytest.raises(RunInterrupted):
+        _run(compose, parts, *small)
+    monkeypatch.delenv("L3D_STOP_AT_STEP")
+    m = _run(compose, parts, *small, "resume=true")
+    assert m["iters"] == 4
+    a, b = (torch.load(d / "checkpoint.pt", weights_only=False)["trainable"] for d in (whole, parts))
+    assert all(torch.equal(a["modules"]["field"][k], b["modules"]["field"][k]) for k in a["modules"]["field"])
+    assert torch.equal(a["extra"]["occupancy"]["mask"], b["extra"]["occupancy"]["mask"])
