@@ -280,8 +280,9 @@ def evaluate_and_report(model: SVRModel, data: SVRData, cfg, ctx, name: str) -> 
         ctx.logger.scalar("eval/f1_curve", float(f), int(round(t * 1000)))  # x axis: threshold in 1e-3 units
     with ctx.stopwatch.stage("visualise"):
         k = min(int(cfg.num_vis), len(objects))
-        if k > 0:
-            grid = visualise(model, data, objects[:k], views[:k], ctx.device, cfg, gen, ctx.path("predictions.png"),
+        if k > 0:  # spread over the test set (it is ordered class by class)
+            pick = torch.linspace(0, len(objects) - 1, k).round().long()
+            grid = visualise(model, data, objects[pick], views[pick], ctx.device, cfg, gen, ctx.path("predictions.png"),
                              ctx.path("predictions.gif") if cfg.get("vis_gif", True) else None)
             ctx.logger.image("eval/predictions", grid)
     f1_at = {threshold_key(t): round(float(f), 5) for t, f in zip(thresholds, table["f1"])}
