@@ -103,3 +103,8 @@ def test_bad_inputs_are_user_errors(compose, tmp_path, tiny_checkpoint):
         _run(compose, tmp_path, f"prior.checkpoint={tmp_path / 'nope.pt'}", "iters=2")
     with pytest.raises(UserError, match="t_min"):
         _run(compose, tmp_path, f"prior.checkpoint={tiny_checkpoint}", "iters=2", "t_min=0.9", "t_max=0.1")
+    with pytest.raises(UserError, match="t_max_end"):
+        _run(compose, tmp_path, f"prior.checkpoint={tiny_checkpoint}", "iters=2", "t_max_end=0.99")
+    with pytest.raises(UserError, match="space=latent"):
+        _run(compose, tmp_path, f"prior.checkpoint={tiny_checkpoint}", "iters=2", "space=latent",
+             "prior.space=pixel")
