@@ -167,7 +167,7 @@ def inside_convex_union(parts: Sequence[Mesh], points: torch.Tensor) -> torch.Te
 
     A point is inside a convex part when it is behind every face plane,
     ``max_f n_f . (p - v_f) <= 0`` (outward face normals): one (P, F) matrix product
-    instead of the generalised winding number's O(P F) solid angles (about 50x faster
+    instead of the generalised winding number's O(P F) solid angles (about 35x faster
     here; the two agree on these shapes, see tests/test_svr_shapes.py). Only valid for
     convex closed parts, which is how every generator here builds its objects.
     """
