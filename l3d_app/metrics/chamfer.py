@@ -86,6 +86,7 @@ def nearest_neighbors_both(x: torch.Tensor, y: torch.Tensor, chunk_size: Optiona
     m_pad = -(-m // tile) * tile
     group = _GROUP
     rows = int(chunk_size) if chunk_size else max(group, _BLOCK_ELEMENTS // m_pad)
+    rows = min(rows, n)  # a small x is one chunk, never padded up to a full block
     rows = -(-rows // group) * group  # whole row groups per chunk
     n_pad = -(-n // rows) * rows
     centre = y.mean(dim=0)  # centring keeps the expansion's cancellation small
