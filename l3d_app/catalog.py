@@ -42,6 +42,7 @@ MODULES = (
     "l3d_app.tasks.gs_train",
     "l3d_app.tasks.gs_render",
     "l3d_app.models.sdf_net",
+    "l3d_app.models.sdf_grid",
     "l3d_app.data.bunny",
     "l3d_app.tasks.volsdf",
     "l3d_app.tasks.neural_sdf",
