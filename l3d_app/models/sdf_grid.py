@@ -30,13 +30,13 @@ Neuralangelo recipe in pure PyTorch:
 
 from __future__ import annotations
 
-import math
 from typing import Callable, Optional, Sequence, Tuple
 
 import torch
 
 from l3d_app.errors import UserError
 from l3d_app.models.encodings import GridEncoding
+from l3d_app.models.sdf_net import geometric_init
 from l3d_app.registry import MODELS
 
 
@@ -144,22 +144,9 @@ class SDFGridField(torch.nn.Module):
         layers.append(torch.nn.Linear(d, 3))
         self.color = torch.nn.Sequential(*layers)
         self.register_buffer("level_mask", torch.ones(self.encoding.n_levels), persistent=True)
-        self._geometric_init()
+        geometric_init(self.layers, self.out, self.radius)
 
     # ------------------------------------------------------------------ init / levels
-    @torch.no_grad()
-    def _geometric_init(self) -> None:
-        for i, lin in enumerate(self.layers):
-            torch.nn.init.normal_(lin.weight, 0.0, math.sqrt(2.0) / math.sqrt(lin.out_features))
-            torch.nn.init.zeros_(lin.bias)
-            if i == 0:
-                lin.weight[:, 3:] = 0.0                # grid columns 0: a sphere whatever the table
-        w = self.out.weight
-        torch.nn.init.normal_(w, 0.0, 1e-4)
-        torch.nn.init.normal_(w[:1], math.sqrt(math.pi) / math.sqrt(w.shape[1]), 1e-4)
-        torch.nn.init.zeros_(self.out.bias)
-        self.out.bias[0] = -self.radius
-
     def mlp_parameters(self):
         """The SDF MLP's parameters (what :meth:`pretrain_sphere` fits)."""
         return list(self.layers.parameters()) + list(self.out.parameters())

@@ -60,20 +60,7 @@ class SDFNetwork(torch.nn.Module):
         self.layers = torch.nn.ModuleList(torch.nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
         self.out = torch.nn.Linear(dims[-1], 1 + self.n_features)
         self.act = torch.nn.Softplus(beta=float(softplus_beta))
-        self._geometric_init()
-
-    @torch.no_grad()
-    def _geometric_init(self) -> None:
-        for i, lin in enumerate(self.layers):
-            torch.nn.init.normal_(lin.weight, 0.0, math.sqrt(2.0) / math.sqrt(lin.out_features))
-            torch.nn.init.zeros_(lin.bias)
-            if i == 0:
-                lin.weight[:, 3:] = 0.0            # only x itself at first (encoded columns 0)
-        w = self.out.weight
-        torch.nn.init.normal_(w, 0.0, 1e-4)
-        torch.nn.init.normal_(w[:1], math.sqrt(math.pi) / math.sqrt(w.shape[1]), 1e-4)
-        torch.nn.init.zeros_(self.out.bias)
-        self.out.bias[0] = -self.radius
+        geometric_init(self.layers, self.out, self.radius)
 
     def encode(self, x: torch.Tensor) -> torch.Tensor:
         if self.kind == "grid":
@@ -122,6 +109,27 @@ class ColorNetwork(torch.nn.Module):
             parts.append(self.enc_dir(dirs))
         return torch.sigmoid(self.mlp(torch.cat(parts, dim=-1)))
 
+
+
+@torch.no_grad()
+def geometric_init(layers: Sequence[torch.nn.Linear], out: torch.nn.Linear, radius: float) -> None:
+    """Geometric initialisation (Atzmon & Lipman, SAL) of an SDF MLP to a sphere of ``radius``.
+
+    ``layers``: the hidden Linear layers whose first takes ``[x (3), encoded features]``; only
+    the xyz columns start non-zero, so the start is the sphere whatever the encoding gives.
+    ``out``: the output Linear whose first row is the SDF (the others are features, ~0).
+    Meant for Softplus hidden activations; at step 0, f(x) is close to ``|x| - radius``.
+    """
+    for i, lin in enumerate(layers):
+        torch.nn.init.normal_(lin.weight, 0.0, math.sqrt(2.0) / math.sqrt(lin.out_features))
+        torch.nn.init.zeros_(lin.bias)
+        if i == 0:
+            lin.weight[:, 3:] = 0.0
+    w = out.weight
+    torch.nn.init.normal_(w, 0.0, 1e-4)
+    torch.nn.init.normal_(w[:1], math.sqrt(math.pi) / math.sqrt(w.shape[1]), 1e-4)
+    torch.nn.init.zeros_(out.bias)
+    out.bias[0] = -radius
 
 @MODELS.register("sdf_field")
 class SDFField(torch.nn.Module):
