@@ -25,7 +25,7 @@ At evaluation the cloud is the foreground points (mask logit > 0).
 from __future__ import annotations
 
 import math
-from typing import Dict, List, Sequence
+from typing import Dict, List
 
 import torch
 from torch import nn

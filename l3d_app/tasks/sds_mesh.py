@@ -140,7 +140,6 @@ def sds_mesh(cfg, ctx) -> dict:
 
     opt = torch.optim.Adam(field.parameters(), lr=float(cfg.lr))
     trainable = Trainable({"texture": field}, opt)
-    stats = {"t_mean": 0.0}
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
         cams, _, _ = sample_orbit_cameras(int(cfg.batch_views), size, ctx.generator, distance=dist_range,
