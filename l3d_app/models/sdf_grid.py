@@ -36,7 +36,7 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.models.encodings import GridEncoding
-from l3d_app.models.sdf_net import geometric_init
+from l3d_app.models.sdf_net import fit_to_sphere, geometric_init
 from l3d_app.registry import MODELS
 
 
@@ -165,20 +165,13 @@ class SDFGridField(torch.nn.Module):
         """Fit the MLP (the grid is fed zeros and not trained) to ``|x| - radius`` on uniform
         points in ``bounds`` (Adam, L1); returns the final mean absolute error (world units)."""
         device = self.out.weight.device
-        lo = torch.as_tensor(bounds[0], dtype=torch.float32, device=device)
-        hi = torch.as_tensor(bounds[1], dtype=torch.float32, device=device)
-        opt = torch.optim.Adam(self.mlp_parameters(), lr=lr)
-        err = float("nan")
-        for _ in range(int(steps)):
-            u = torch.rand(n_points, 3, generator=generator, device=generator.device if generator else None)
-            x = lo + u.to(device) * (hi - lo)
-            h = torch.cat([x, torch.zeros(x.shape[0], self.encoding.out_dim, device=device)], dim=-1)
-            loss = (self._mlp(h)[..., 0] - (x.norm(dim=-1) - self.radius)).abs().mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            err = float(loss.detach())
-        return err
+
+        def mlp_sdf(x: torch.Tensor) -> torch.Tensor:
+            zeros = torch.zeros(x.shape[0], self.encoding.out_dim, device=device)
+            return self._mlp(torch.cat([x, zeros], dim=-1))[..., 0]
+
+        return fit_to_sphere(mlp_sdf, self.mlp_parameters(), self.radius, bounds, steps, n_points, lr,
+                             generator, device=device)
 
     # ------------------------------------------------------------------ SDF
     def _mask(self) -> torch.Tensor:

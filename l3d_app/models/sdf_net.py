@@ -17,7 +17,7 @@ position and the SDF network's features (optionally the view direction).
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence, Tuple
+from typing import Callable, Iterable, Optional, Sequence, Tuple
 
 import torch
 
@@ -154,22 +154,30 @@ class SDFField(torch.nn.Module):
         return f, self.color_net(points, feat, dirs)
 
 
-def pretrain_sphere(net: SDFNetwork, radius: float, bounds: Tuple[Sequence[float], Sequence[float]],
-                    steps: int = 200, n_points: int = 2048, lr: float = 1e-3,
-                    generator: Optional[torch.Generator] = None) -> float:
-    """Fit ``net`` to the sphere SDF ``|x| - radius`` on uniform points in ``bounds`` (Adam,
-    L1); returns the final mean absolute error (world units)."""
-    device = next(net.parameters()).device
+def fit_to_sphere(sdf_fn: Callable[[torch.Tensor], torch.Tensor], params: Iterable[torch.nn.Parameter],
+                  radius: float, bounds: Tuple[Sequence[float], Sequence[float]], steps: int = 200,
+                  n_points: int = 2048, lr: float = 1e-3, generator: Optional[torch.Generator] = None,
+                  device=None) -> float:
+    """Fit ``params`` so that ``sdf_fn(x (N, 3)) -> (N,)`` matches the sphere SDF ``|x| - radius``
+    on uniform points in ``bounds`` (Adam, L1); returns the final mean absolute error (world units)."""
     lo = torch.as_tensor(bounds[0], dtype=torch.float32, device=device)
     hi = torch.as_tensor(bounds[1], dtype=torch.float32, device=device)
-    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    opt = torch.optim.Adam(params, lr=lr)
     err = float("nan")
     for _ in range(int(steps)):
         u = torch.rand(n_points, 3, generator=generator, device=generator.device if generator else None)
-        x = lo + u.to(device) * (hi - lo)
-        loss = (net(x)[0] - (x.norm(dim=-1) - radius)).abs().mean()
+        x = lo + u.to(lo.device) * (hi - lo)
+        loss = (sdf_fn(x) - (x.norm(dim=-1) - radius)).abs().mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         err = float(loss.detach())
     return err
+
+
+def pretrain_sphere(net: SDFNetwork, radius: float, bounds: Tuple[Sequence[float], Sequence[float]],
+                    steps: int = 200, n_points: int = 2048, lr: float = 1e-3,
+                    generator: Optional[torch.Generator] = None) -> float:
+    """Fit ``net`` to the sphere SDF ``|x| - radius`` (see :func:`fit_to_sphere`)."""
+    return fit_to_sphere(lambda x: net(x)[0], net.parameters(), radius, bounds, steps, n_points, lr,
+                         generator, device=next(net.parameters()).device)
