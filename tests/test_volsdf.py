@@ -91,7 +91,8 @@ def test_volsdf_short_run_improves_psnr_and_writes_everything(compose, tmp_path)
     assert (cfg.beta, cfg.alpha, cfg.beta_mode, cfg.density) == (0.1, None, "anneal", "volsdf")
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    for key in ("psnr", "ssim", "chamfer", "chamfer_rel_diag", "f1", "seconds", "samples_per_ray",
+    for key in ("psnr", "ssim", "chamfer", "chamfer_rel_diag", "f1", "chamfer_observed",
+                "chamfer_observed_rel_diag", "f1_observed", "observed_fraction", "seconds", "samples_per_ray",
                 "fine_samples_per_ray", "iters", "n_params", "beta", "beta_final", "cpu_seconds_per_step"):
         assert key in m, key
     hist = [h["psnr"] for h in m["history"]]
@@ -99,6 +100,9 @@ def test_volsdf_short_run_improves_psnr_and_writes_everything(compose, tmp_path)
     assert np.isfinite(m["chamfer"]) and 0 <= m["f1"] <= 1
     assert 0 < m["fine_samples_per_ray"] <= cfg.n_fine and m["samples_per_ray"] <= cfg.n_coarse + cfg.n_fine
     assert m["chamfer_rel_diag"] == pytest.approx(m["chamfer"] / 2.1354, rel=1e-3)     # the true mesh's diagonal
+    # the training cameras (elevations -10..70 degrees) never see the plinth's underside
+    assert 0.6 < m["observed_fraction"] < 0.8
+    assert m["chamfer_observed_rel_diag"] == pytest.approx(m["chamfer_observed"] / 2.1354, rel=1e-3)
     for name in ("render.gif", "geometry.gif", "mesh.obj", "test_views.png", "checkpoint.pt"):
         assert (tmp_path / "run" / name).exists(), name
 

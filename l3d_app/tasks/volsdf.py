@@ -25,11 +25,13 @@
   ``lr * lr_final_ratio``; ``time_budget`` > 0 stops training after that many seconds.
 
 Evaluation: test PSNR / SSIM; a marching-cubes mesh of the SDF's zero level set, scored
-against the ground-truth surface when the data has one (the built-in scene): ``chamfer`` is
-the symmetric mean of NON-squared nearest distances (world units, ``mean_x d(x, Y) +
-mean_y d(y, X)`` on ``eval_points`` samples of each surface), ``chamfer_rel_diag`` the same
-divided by the ground-truth mesh's bounding-box diagonal, ``f1`` the F-score at
-``f1_threshold`` (0.05).
+against the ground-truth surface when the data has one (the built-in scene) by
+:func:`~l3d_app.metrics.surface_scores.surface_scores`: ``chamfer`` = mean accuracy + mean
+completeness, EXACT point-to-mesh distances of ``eval_points`` samples of each surface
+(world units, not squared), ``chamfer_rel_diag`` the same over the true mesh's
+bounding-box diagonal, ``f1`` / ``precision`` / ``recall`` at ``f1_threshold`` (0.05); the
+``*_observed`` variants score only the true surface the TRAINING cameras see (and the
+predicted surface nearest to it), ``observed_fraction`` its share of the true area.
 Outputs: ``render.gif`` (360 colour), ``geometry.gif`` (360 sphere-traced shading of the SDF),
 ``mesh.<ply|obj>``, ``test_views.png``, ``metrics.json``.
 """
@@ -49,11 +51,9 @@ from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.marching_cubes import sdf_to_mesh
 from l3d_app.geometry.mesh_io import save_mesh
 from l3d_app.geometry.rays import camera_rays
-from l3d_app.geometry.sampling import sample_surface
 from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
-from l3d_app.metrics.chamfer import chamfer_distance
-from l3d_app.metrics.fscore import fscore
 from l3d_app.metrics.image import psnr, ssim
+from l3d_app.metrics.surface_scores import surface_scores
 from l3d_app.models.sdf_grid import pretrain_field
 from l3d_app.registry import DATASETS, MODELS, TASKS
 from l3d_app.render.densities import LaplaceDensity
@@ -188,7 +188,7 @@ def volsdf(cfg, ctx) -> dict:
         metrics = {"psnr": round(float(psnr(pred, target)), 4), "ssim": round(float(ssim(pred, target)), 4)}
         save_png(ctx.path("test_views.png"), torch.cat([torch.cat(list(pred[:8]), 1), torch.cat(list(target[:8]), 1)], 0))
     with ctx.stopwatch.stage("mesh"):
-        metrics.update(_surface_metrics(cfg, ctx, model, box))
+        metrics.update(_surface_metrics(cfg, ctx, model, box, data))
     if int(cfg.gif_frames) > 0:
         with ctx.stopwatch.stage("gifs"):
             _turntables(cfg, ctx, model, render_fn, data, box)
@@ -265,19 +265,18 @@ def _gradient_at(model, points: torch.Tensor) -> torch.Tensor:
     return sdf_gradient(model.sdf, points, create_graph=True)
 
 
-def _ground_truth(cfg, n: int):
-    """((n, 3) points on the data's true surface, its bounding-box diagonal) or None when the
-    data has no known surface."""
+def _ground_truth(cfg):
+    """The true mesh of the data's scene (the built-in scene), or None when the data has no
+    known surface."""
     if str(cfg.data.name) != "nerf_builtin":
         return None
-    from l3d_app.data.nerf_truth import builtin_surface_bounds, builtin_surface_points
+    from l3d_app.data.nerf_views import nerf_scene
 
-    lo, hi = builtin_surface_bounds()
-    return builtin_surface_points(n, torch.Generator().manual_seed(1)), float((hi - lo).norm())
+    return nerf_scene()
 
 
 @torch.no_grad()
-def _surface_metrics(cfg, ctx, model, box) -> Dict[str, float]:
+def _surface_metrics(cfg, ctx, model, box, data) -> Dict[str, float]:
     """Marching cubes of the SDF -> mesh file; chamfer / F1 against the ground truth if known."""
     fmt = str(cfg.mesh_format).lower().lstrip(".")
     if fmt not in ("ply", "obj"):
@@ -291,15 +290,11 @@ def _surface_metrics(cfg, ctx, model, box) -> Dict[str, float]:
         return {"mesh_faces": 0}
     save_mesh(mesh, ctx.path(f"mesh.{fmt}"))
     out: Dict[str, float] = {"mesh_faces": int(mesh.num_faces)}
-    n = int(cfg.eval_points)
-    truth = _ground_truth(cfg, n)
+    truth = _ground_truth(cfg)
     if truth is not None:
-        gt, diag = truth
-        pred = sample_surface(mesh.to("cpu"), n, generator=torch.Generator().manual_seed(2)).points
-        cd = float(chamfer_distance(pred, gt, squared=False))
-        f = fscore(pred, gt, float(cfg.f1_threshold))
-        out.update({"chamfer": round(cd, 6), "chamfer_rel_diag": round(cd / diag, 6), "f1": round(f["f1"], 4),
-                    "precision": round(f["precision"], 4), "recall": round(f["recall"], 4)})
+        scores = surface_scores(mesh, truth, cameras=data.cameras[data.train.to(data.cameras.device)],
+                                n=int(cfg.eval_points), threshold=float(cfg.f1_threshold), seed=2)
+        out.update({k: round(v, 6) for k, v in scores.items()})
     return out
 
 
