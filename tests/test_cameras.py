@@ -37,7 +37,7 @@ from l3d_app.geometry.cameras import (
     to_opengl_c2w,
     to_pytorch3d,
 )
-from l3d_app.geometry.rays import camera_rays, pixel_centers, pixels_to_directions
+from l3d_app.geometry.rays import camera_rays, pixel_axes, pixel_centers, pixels_to_directions, supersampled_rays
 
 F64 = torch.float64
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -749,3 +749,24 @@ def test_invalid_fov_raises_user_error(fov):
 def test_invalid_image_size_in_look_at_cameras():
     with pytest.raises(UserError):
         look_at_cameras(2.0, 0.0, 0.0, fov=60.0, image_size=0)
+
+
+def test_pixel_axes_move_a_ray_exactly_by_sub_pixel_steps():
+    cams = look_at_cameras(3.0, torch.tensor([10.0, 40.0]), torch.tensor([20.0, 200.0]), 45.0, 16).to(dtype=torch.float64)
+    du, dv = pixel_axes(cams)
+    uv = pixel_centers(16, 16, dtype=torch.float64)[None].expand(2, -1, -1, -1)
+    d0 = pixels_to_directions(cams, uv, normalize=False)
+    d1 = pixels_to_directions(cams, uv + torch.tensor([0.3, -0.45], dtype=torch.float64), normalize=False)
+    assert torch.allclose(d0 + 0.3 * du[:, None, None] - 0.45 * dv[:, None, None], d1, atol=1e-14)
+
+
+def test_supersampled_rays_hit_the_sub_pixel_centres_of_a_finer_camera():
+    from l3d_app.render.mesh_renderer import scale_cameras
+
+    cams = look_at_cameras(3.0, torch.tensor([25.0]), torch.tensor([60.0]), 50.0, 8).to(dtype=torch.float64)
+    o, d = supersampled_rays(cams, 2)
+    assert d.shape == (1, 8, 8, 4, 3) and torch.allclose(d.norm(dim=-1), torch.ones(1, 8, 8, 4, dtype=torch.float64))
+    _, fine = camera_rays(scale_cameras(cams, 2))                        # (1, 16, 16, 3)
+    fine = fine.reshape(1, 8, 2, 8, 2, 3).permute(0, 1, 3, 2, 4, 5).reshape(1, 8, 8, 4, 3)
+    assert torch.allclose(d, fine, atol=1e-12)
+    assert torch.allclose(o, cams.centers()[:, None, None, None].expand_as(o))

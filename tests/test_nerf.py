@@ -293,3 +293,16 @@ def test_nerf_baseline_config_is_the_course_setting(compose, tmp_path):
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert m["iters"] == 3 and m["occupied_fraction"] == 1.0 and math.isfinite(m["psnr"])
+
+
+def test_builtin_cameras_follow_the_elevation_range():
+    from l3d_app.data.nerf_views import builtin_cameras
+
+    for lo, hi in ((-10.0, 70.0), (-50.0, 70.0)):
+        cams, tr, va, te = builtin_cameras(60, 2, 3, 16, 3.2, 45.0, (lo, hi))
+        elev = torch.rad2deg(torch.asin(cams.centers()[tr, 1].double() / 3.2))
+        assert elev.min() > lo and elev.max() < hi
+        assert elev.min() < lo + 3 and elev.max() > hi - 6          # spread over the whole range
+        assert len(va) == 2 and len(te) == 3
+    with pytest.raises(UserError):
+        builtin_cameras(10, 1, 1, 16, 3.2, 45.0, (20.0, -10.0))

@@ -126,16 +126,21 @@ def nerf_scene() -> Mesh:
     return P.join([plinth] + poles + [ring, sphere])
 
 
-def builtin_cameras(n_train: int, n_val: int, n_test: int, image_size: int, distance: float, fov: float
+def builtin_cameras(n_train: int, n_val: int, n_test: int, image_size: int, distance: float, fov: float,
+                    elevation_range: Sequence[float] = (-10.0, 70.0)
                     ) -> Tuple[Cameras, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Cameras (train, then val, then test) looking at the origin, and the split indices.
 
-    Train: Fibonacci spiral, elevation uniform in sin over [-10, 70] degrees, golden-angle
-    azimuths. Val: a ring at 45 degrees. Test: a ring at 20 degrees, azimuths offset by half
-    a step from 0.
+    Train: Fibonacci spiral, elevation uniform in sin over ``elevation_range`` degrees
+    (default [-10, 70]: the plinth's underside is never seen), golden-angle azimuths. Val: a
+    ring at 45 degrees. Test: a ring at 20 degrees, azimuths offset by half a step from 0.
     """
+    e_lo, e_hi = (float(e) for e in elevation_range)
+    if not -90.0 <= e_lo < e_hi <= 90.0:
+        raise UserError(f"elevation_range must be [low, high] degrees with -90 <= low < high <= 90, "
+                        f"got {list(elevation_range)}")
     k = torch.arange(n_train, dtype=torch.float64)
-    lo, hi = math.sin(math.radians(-10.0)), math.sin(math.radians(70.0))
+    lo, hi = math.sin(math.radians(e_lo)), math.sin(math.radians(e_hi))
     elev = torch.rad2deg(torch.asin(lo + (hi - lo) * (k + 0.5) / n_train))
     azim = torch.remainder(k * 137.50776405, 360.0)
     elev = torch.cat([elev, torch.full((n_val,), 45.0, dtype=torch.float64), torch.full((n_test,), 20.0, dtype=torch.float64)])
@@ -150,7 +155,7 @@ def builtin_cameras(n_train: int, n_val: int, n_test: int, image_size: int, dist
 def nerf_builtin(image_size: int = 64, n_train: int = 100, n_val: int = 4, n_test: int = 8,
                  distance: float = 3.2, fov: float = 45.0, background="white", antialias: int = 2,
                  cache_dir: str = "outputs/.cache", scene_box: Sequence[Sequence[float]] = ((-0.75,) * 3, (0.75,) * 3),
-                 device=None) -> MultiViewData:
+                 elevation_range: Sequence[float] = (-10.0, 70.0), device=None) -> MultiViewData:
     """The built-in multi-view dataset (see the module docstring); cached in ``cache_dir``.
 
     ``image_size`` pixels square (64 default, 128 option); ``distance`` world units;
@@ -160,10 +165,12 @@ def nerf_builtin(image_size: int = 64, n_train: int = 100, n_val: int = 4, n_tes
         raise UserError(f"nerf_builtin needs image_size >= 8, n_train >= 1, n_test >= 1, "
                         f"got {image_size}, {n_train}, {n_test}")
     bg = background_rgb(background)
+    elev = [float(e) for e in elevation_range]
     key = json.dumps([1, int(image_size), int(n_train), int(n_val), int(n_test), float(distance), float(fov),
-                      bg.tolist(), int(antialias)])
+                      bg.tolist(), int(antialias)] + ([] if elev == [-10.0, 70.0] else [elev]))
     path = resolve_path(cache_dir) / f"nerf_builtin_{hashlib.sha1(key.encode()).hexdigest()[:12]}.pt"
-    cams, tr, va, te = builtin_cameras(int(n_train), int(n_val), int(n_test), int(image_size), float(distance), float(fov))
+    cams, tr, va, te = builtin_cameras(int(n_train), int(n_val), int(n_test), int(image_size), float(distance),
+                                       float(fov), elev)
     if path.exists():
         images = torch.load(path, map_location="cpu", weights_only=True)["images"]
     else:

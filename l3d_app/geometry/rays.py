@@ -41,3 +41,30 @@ def camera_rays(cams: Cameras, normalize: bool = True) -> Tuple[torch.Tensor, to
     dirs = pixels_to_directions(cams, uv, normalize=normalize)
     origins = cams.centers()[:, None, None, :].expand_as(dirs)
     return origins, dirs
+
+
+def pixel_axes(cams: Cameras) -> Tuple[torch.Tensor, torch.Tensor]:
+    """(B, 3), (B, 3): how an UNNORMALISED ray direction (camera-frame Z = 1, as from
+    :func:`pixels_to_directions` with ``normalize=False``) changes per pixel step in u and in v.
+
+    A pinhole direction is linear in the pixel coordinates, so the ray through (u + a, v + b)
+    is exactly ``d(u, v) + a * du + b * dv``: random sub-pixel rays (anti-aliased training)
+    cost one multiply-add.
+    """
+    return cams.R[:, 0, :] / cams.fx[:, None], cams.R[:, 1, :] / cams.fy[:, None]
+
+
+def supersampled_rays(cams: Cameras, factor: int, normalize: bool = True) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Rays through a ``factor`` x ``factor`` grid of sub-pixel centres of every pixel: origins and
+    directions (B, H, W, factor^2, 3); their mean colour is the box-filtered (SSAA) pixel, the way
+    the mesh renderer's ``antialias`` makes images."""
+    s = int(factor)
+    if s < 1:
+        raise ValueError(f"supersampling factor must be >= 1, got {factor}")
+    uv = pixel_centers(cams.height, cams.width, device=cams.device, dtype=cams.R.dtype)         # (H, W, 2)
+    off = (torch.arange(s, device=cams.device, dtype=cams.R.dtype) + 0.5) / s - 0.5
+    grid = torch.stack(torch.meshgrid(off, off, indexing="xy"), dim=-1).reshape(-1, 2)        # (s*s, 2)
+    uv = (uv[:, :, None, :] + grid)[None].expand(cams.batch_size, -1, -1, -1, -1)
+    dirs = pixels_to_directions(cams, uv, normalize=normalize)
+    origins = cams.centers()[:, None, None, None, :].expand_as(dirs)
+    return origins, dirs
