@@ -26,7 +26,7 @@ from l3d_app.runtime.files import atomic_path
 
 #: error figures in order of preference, and whether higher is better
 ERROR_KEYS = {"psnr": True, "ssim": True, "iou": True, "f1": True, "accuracy": True,
-              "chamfer": False, "center_error": False, "size_error": False,
+              "chamfer": False, "chamfer_observed": False, "f1_observed": True, "center_error": False, "size_error": False,
               "subject_width_spread": False}
 SIZE_KEYS = ("n_params", "n_gaussians", "n_faces", "n_points", "occupied_cells")
 

@@ -111,9 +111,9 @@ def test_surface_scores_zero_for_the_truth_and_exact_for_an_offset_box():
     s = surface_scores(big, cube, n=4000, threshold=0.05)
     # completeness: every point of the true (smaller) box is exactly delta inside the big one;
     # accuracy: delta, plus a little near the big box's edges (sqrt(delta^2 + overhang^2))
-    assert s["completeness"] == pytest.approx(delta, abs=1e-6)   # float32 vertices
-    assert delta <= s["accuracy"] <= delta * 1.05
-    assert s["chamfer"] == pytest.approx(s["accuracy"] + s["completeness"])
+    assert s["completeness_distance"] == pytest.approx(delta, abs=1e-6)   # float32 vertices
+    assert delta <= s["accuracy_distance"] <= delta * 1.05
+    assert s["chamfer"] == pytest.approx(s["accuracy_distance"] + s["completeness_distance"])
     assert s["chamfer_rel_diag"] == pytest.approx(s["chamfer"] / math.sqrt(3.0))
     assert s["f1"] == 1.0
 

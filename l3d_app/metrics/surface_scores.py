@@ -6,7 +6,7 @@ of the truth, distances EXACT point-to-mesh (:mod:`~l3d_app.metrics.point_mesh_d
 so there is no sampling floor):
 
 - accuracy ``acc(p) = d(p, true mesh)``, completeness ``comp(g) = d(g, predicted mesh)``
-  (``accuracy`` / ``completeness``: their means);
+  (``accuracy_distance`` / ``completeness_distance``: their means);
 - ``chamfer = mean_P acc + mean_G comp``; ``precision`` / ``recall`` = fraction of ``P`` / ``G``
   within ``threshold``, ``f1`` their harmonic mean;
 - ``*_observed``: the same restricted to what the cameras see (:mod:`~l3d_app.metrics.observed`):
@@ -52,8 +52,8 @@ def surface_scores(pred: Mesh, truth: Mesh, cameras: Optional[Cameras] = None, n
     acc = point_mesh_distance(ps, truth)
     comp = point_mesh_distance(gs.points, pred)
     diag = float((truth.verts.max(0).values - truth.verts.min(0).values).norm())
-    out = {"chamfer": float(acc.mean() + comp.mean()), "accuracy": float(acc.mean()),
-           "completeness": float(comp.mean()), **_prf(acc, comp, threshold)}
+    out = {"chamfer": float(acc.mean() + comp.mean()), "accuracy_distance": float(acc.mean()),
+           "completeness_distance": float(comp.mean()), **_prf(acc, comp, threshold)}
     out["chamfer_rel_diag"] = out["chamfer"] / diag
     if cameras is not None:
         depth = true_depth_maps(truth, cameras.to("cpu"), scale=int(depth_scale))
