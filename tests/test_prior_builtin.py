@@ -120,5 +120,18 @@ def test_shipped_prior_samples_match_their_prompts(space):
     prompts = full_prompts(4)
     out = ddim_sample(prior, prompts, steps=15, guidance_scale=3.0, generator=torch.Generator().manual_seed(0))
     # chance for a fully specified prompt is 1/54; DDIM samples of the small shipped priors
-    # get colour and background right almost always, the shape less often
-    assert match_rate(out, prompts) >= 0.25
+    # get colour and background right almost always, the shape less often (measured here:
+    # pixel 5/12, latent 8/12; the first shipped prior: 3/12 and 4/12)
+    assert match_rate(out, prompts) >= 0.33
+
+
+def test_train_prior_lr_schedule():
+    from l3d_app.tasks.train_prior import _lr_factor
+    f = _lr_factor("cosine", 1000, 0)
+    assert abs(f(0) - 0.01) < 1e-9 and abs(f(49) - 0.5) < 1e-9
+    assert abs(f(999) - 0.05) < 1e-9 and abs(f(500) - (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * 500 / 999)))) < 1e-9
+    lat = _lr_factor("cosine", 1000, 400)  # the latent U-Net's decay starts after the autoencoder
+    assert lat(399) == 1.0 and abs(lat(400) - 1.0) < 1e-9 and abs(lat(999) - 0.05) < 1e-9
+    assert _lr_factor("none", 1000, 0)(999) == 1.0
+    with pytest.raises(UserError):
+        _lr_factor("step", 1000, 0)

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from l3d_app.data.prompt_images import (ANY, BACKGROUND_NAMES, COLOUR_NAMES, SHAPES, parse_prompt,
-                                        prompt_batch, prompt_text, render_prompt_images, shape_masks)
+                                        prompt_batch, prompt_text, render_prompt_images, sample_labels,
+                                        shape_masks)
 from l3d_app.errors import UserError
 from l3d_app.metrics.prompt_match import check_image, largest_component, match_rate
 
@@ -43,8 +44,25 @@ def test_images_are_valid_and_reproducible():
     assert torch.equal(a, b) and torch.equal(la, lb)
 
 
+def test_default_jitter_is_small_and_within_its_ranges():
+    """Defaults: radius 22-30% of the side, centre within 5% of the side of the middle."""
+    g = torch.Generator().manual_seed(5)
+    labels = torch.tensor([[0, 1, 0]] * 200)  # red squares on white: the shape's box is exact
+    images = render_prompt_images(labels, 64, g, jitter=0.0)
+    inside = (images[:, 1] < 0.5)  # red channel high, green low inside the square
+    for m in inside:
+        ys, xs = torch.nonzero(m, as_tuple=True)
+        side = float(xs.max() - xs.min() + 1)
+        assert 0.44 * 64 - 2 <= side <= 0.60 * 64 + 2
+        cx, cy = float(xs.float().mean()) + 0.5, float(ys.float().mean()) + 0.5
+        assert abs(cx - 32) <= 0.05 * 64 + 1 and abs(cy - 32) <= 0.05 * 64 + 1
+
+
 def test_checker_accepts_clean_samples():
-    images, labels = prompt_batch(240, 32, torch.Generator().manual_seed(0))
+    # the checker is tested on a wider position/size jitter than the prior's default
+    g = torch.Generator().manual_seed(0)
+    labels = sample_labels(240, g)
+    images = render_prompt_images(labels, 32, g, min_radius=0.2, max_radius=0.32, max_offset=0.12)
     prompts = [prompt_text(*l.tolist()) for l in labels]
     assert match_rate(images, prompts) == 1.0
     # partial prompts (unnamed slots) match too

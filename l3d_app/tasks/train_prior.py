@@ -3,7 +3,8 @@
 Each step draws a fresh batch of ``batch_size`` images of random prompts
 (:mod:`l3d_app.data.prompt_images`) and takes one AdamW step on the DDPM v- (or eps-) MSE of
 the pixel prior and/or the latent prior (``space`` = pixel | latent | both), with
-classifier-free-guidance slot dropout. The latent prior first trains its autoencoder for
+classifier-free-guidance slot dropout; the learning rate warms up over 100 steps and then
+stays (``lr_decay=none``) or falls along a cosine to 5% at the end (``lr_decay=cosine``). The latent prior first trains its autoencoder for
 ``ae_iters`` steps (reconstruction MSE), fixes the latent scale (1 / std of the latents of
 a fixed batch) and then trains its U-Net. Exponential moving averages of the weights
 (``ema_decay``) are what gets evaluated and exported.
@@ -22,6 +23,7 @@ final evaluation recorded inside per space;
 from __future__ import annotations
 
 import copy
+import math
 import sys
 from typing import Dict
 
@@ -56,6 +58,21 @@ def _ema_update(ema: torch.nn.Module, live: torch.nn.Module, decay: float) -> No
         e.copy_(b)
 
 
+def _lr_factor(decay: str, iters: int, ae_iters: int):
+    """lr multiplier of step i: 100-step warm-up, then constant (``none``) or a cosine fall
+    to 5% at the last step (``cosine``); the latent U-Net's schedule starts after ``ae_iters``."""
+    if decay not in ("none", "cosine"):
+        raise UserError(f"lr_decay must be 'none' or 'cosine', got '{decay}'")
+
+    def factor(i: int) -> float:
+        warm = min(1.0, (i + 1) / 100)
+        if decay == "none" or i < ae_iters:
+            return warm
+        frac = (i - ae_iters) / max(1, iters - 1 - ae_iters)
+        return min(warm, 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(1.0, frac))))
+    return factor
+
+
 @TASKS.register("train_prior")
 def train_prior(cfg, ctx) -> dict:
     """Train, evaluate sample match rates, export the float16 checkpoint; return metrics."""
@@ -71,7 +88,7 @@ def train_prior(cfg, ctx) -> dict:
     ema = {s: copy.deepcopy(m).requires_grad_(False) for s, m in live.items()}
     params = [p for m in live.values() for p in m.parameters()]
     opt = torch.optim.AdamW(params, lr=float(cfg.lr), weight_decay=0.0)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: min(1.0, (i + 1) / 100))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_factor(str(cfg.lr_decay), int(cfg.iters), ae_iters))
     modules = {**live, **{f"{s}_ema": m for s, m in ema.items()}}
     trainable = Trainable(modules, opt, extra={"sched": sched})
     prompts = full_prompts(max(1, int(cfg.eval_prompts) // 3))
