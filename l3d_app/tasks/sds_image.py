@@ -6,10 +6,10 @@ decoded by the prior's decoder). It starts at the encoding of a flat grey image 
 ``init_noise`` Gaussian noise. Each step averages the SDS gradient
 (:func:`l3d_app.losses.sds.sds_loss`: t in [t_min, t_max], w(t) = 1 - abar_t, CFG scale
 ``guidance_scale``; with ``t_max_end`` set (default 0.5), t_max falls linearly to it over
-the run, so the last steps draw only low-noise timesteps) over ``batch`` draws of (t, noise) and takes an Adam step (in pixel
-space the image is first rolled by a random offset of up to ``shift`` pixels, which keeps the
-prior's 2 x 2 patch grid from printing a checkerboard); a
-non-finite gradient is never applied (the shared loop skips the step and counts it).
+the run) over ``batch`` draws of (t, noise) and takes an Adam step (in pixel space the
+image is first rolled by a random offset of up to ``shift`` pixels, which keeps the prior's
+2 x 2 patch grid from printing a checkerboard); a non-finite gradient is never applied (the
+shared loop skips the step and counts it).
 
 Outputs: ``final.png`` (native size and ``final_x8.png`` enlarged), ``progress.gif``
 (decoded image every ``frame_every`` steps), TensorBoard images ``sds/image`` over the
