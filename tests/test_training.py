@@ -1,5 +1,6 @@
 """The shared training loop: NaN guard, checkpoints, resume, clean stop on a signal."""
 
+import math
 import os
 import signal
 
@@ -7,6 +8,7 @@ import torch
 
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.logger import RunLogger
+from l3d_app.runtime.lr_schedules import warmup_cosine
 from l3d_app.runtime.seed import seed_everything
 from l3d_app.runtime.training import CHECKPOINT, Trainable, train
 
@@ -95,3 +97,14 @@ def test_interrupt_then_resume_matches_uninterrupted_run(tmp_path):
     second = train(ctx, trainable, regression_step(ctx, model), iters=40, resume=True)
     assert second.step == 40 and not second.interrupted
     torch.testing.assert_close(model.weight.detach(), reference, rtol=0, atol=0)
+
+
+def test_warmup_cosine_schedule_values():
+    f = warmup_cosine(warmup=50, decay_start=50, decay_end=1500, final_ratio=0.05)
+    assert f(0) == 1 / 50 and f(24) == 0.5 and f(49) == 1.0 and f(50) == 1.0
+    assert f(775) == 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * 725 / 1450))
+    assert abs(f(1500) - 0.05) < 1e-15 and abs(f(5000) - 0.05) < 1e-15          # held after the end
+    assert warmup_cosine(0, 0, 10, 0.5)(0) == 1.0                               # no warm-up
+    assert warmup_cosine(10, 0, 100, 1.0)(99) == 1.0                            # constant after warm-up
+    g = warmup_cosine(100, 0, 999, 0.05)                                         # decay already during warm-up
+    assert g(99) == 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * 99 / 999)) < 1.0

@@ -56,9 +56,10 @@ def surface_scores(pred: Mesh, truth: Mesh, cameras: Optional[Cameras] = None, n
            "completeness_distance": float(comp.mean()), **_prf(acc, comp, threshold)}
     out["chamfer_rel_diag"] = out["chamfer"] / diag
     if cameras is not None:
-        depth = true_depth_maps(truth, cameras.to("cpu"), scale=int(depth_scale))
+        cams = cameras.to("cpu")
+        depth = true_depth_maps(truth, cams, scale=int(depth_scale))
         normals = truth.face_normals()[gs.face_index]
-        seen_g = observed_mask(gs.points, cameras.to("cpu"), depth, float(tolerance), normals=normals)
+        seen_g = observed_mask(gs.points, cams, depth, float(tolerance), normals=normals)
         seen_p = seen_g[nearest_neighbors(ps, gs.points)]
         a, c = acc[seen_p], comp[seen_g]
         obs = {"chamfer": float(a.mean() + c.mean()) if a.numel() and c.numel() else float("nan"),

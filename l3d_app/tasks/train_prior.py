@@ -23,7 +23,6 @@ final evaluation recorded inside per space;
 from __future__ import annotations
 
 import copy
-import math
 import sys
 from typing import Dict
 
@@ -35,6 +34,7 @@ from l3d_app.diffusion.sampling import ddim_sample
 from l3d_app.errors import UserError
 from l3d_app.metrics.prompt_match import match_rate
 from l3d_app.registry import TASKS
+from l3d_app.runtime.lr_schedules import warmup_cosine
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.paths import resolve_path
 from l3d_app.runtime.training import Trainable, train
@@ -63,14 +63,7 @@ def _lr_factor(decay: str, iters: int, ae_iters: int):
     to 5% at the last step (``cosine``); the latent U-Net's schedule starts after ``ae_iters``."""
     if decay not in ("none", "cosine"):
         raise UserError(f"lr_decay must be 'none' or 'cosine', got '{decay}'")
-
-    def factor(i: int) -> float:
-        warm = min(1.0, (i + 1) / 100)
-        if decay == "none" or i < ae_iters:
-            return warm
-        frac = (i - ae_iters) / max(1, iters - 1 - ae_iters)
-        return min(warm, 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(1.0, frac))))
-    return factor
+    return warmup_cosine(100, ae_iters, iters - 1, 0.05 if decay == "cosine" else 1.0)
 
 
 @TASKS.register("train_prior")

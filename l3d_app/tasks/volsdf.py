@@ -46,7 +46,6 @@ Outputs: ``render.gif`` (360 colour), ``geometry.gif`` (360 sphere-traced shadin
 
 from __future__ import annotations
 
-import math
 import os
 import signal
 import time
@@ -68,6 +67,7 @@ from l3d_app.render.densities import LaplaceDensity
 from l3d_app.render.sdf_volume import DENSITIES, SDFGridCache, render_sdf_rays
 from l3d_app.render.sphere_tracing import render_sdf_shaded
 from l3d_app.render.volume import render_rays_chunked
+from l3d_app.runtime.lr_schedules import warmup_cosine
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import require_positive
@@ -119,8 +119,8 @@ def volsdf(cfg, ctx) -> dict:
     opt = torch.optim.Adam([{"params": list(model.parameters())},
                             {"params": list(dens.parameters()), "lr": float(cfg.lr_beta)}],
                            lr=float(cfg.lr), eps=1e-15)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, _warmup_cosine(int(cfg.iters), int(cfg.warmup_steps),
-                                                                  float(cfg.lr_final_ratio)))
+    warm = int(cfg.warmup_steps)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, warmup_cosine(warm, warm, int(cfg.iters), float(cfg.lr_final_ratio)))
     extra = {"scheduler": sched}
     if cache is not None:
         extra["sdf_cache"] = cache
@@ -250,18 +250,6 @@ class _LevelSchedule:
         n = n_levels if self.start <= 0 or self.every <= 0 else self.start + step // self.every
         self.model.set_active_levels(min(n, n_levels))
         self.active = self.model.active_levels
-
-
-def _warmup_cosine(iters: int, warmup: int, final_ratio: float):
-    """LR factor: linear warm-up over ``warmup`` steps, then cosine from 1 to ``final_ratio``."""
-
-    def factor(step: int) -> float:
-        if step < warmup:
-            return (step + 1) / warmup
-        p = min(1.0, (step - warmup) / max(1, iters - warmup))
-        return final_ratio + (1.0 - final_ratio) * 0.5 * (1.0 + math.cos(math.pi * p))
-
-    return factor
 
 
 def _field_with_gradient(model):
