@@ -1,11 +1,21 @@
 """The shared training loop: progress bar, logging, evaluation, checkpoints, resume, NaN guard.
 
-Every training task hands :func:`train` a :class:`Trainable` (its modules/tensors and
-optimiser) and two callbacks, and gets, for free:
+Every training task hands :func:`train` a :class:`Trainable` (its modules/tensors,
+optimiser and LR schedulers) and two callbacks, and gets, for free:
 
 * a tqdm bar and TensorBoard scalars of the step's logs (against step; wall time via
-  ``time/seconds`` and TensorBoard's relative axis);
-* evaluation every ``eval_every`` steps and at the end (error figures next to seconds);
+  ``time/seconds`` and TensorBoard's relative axis), and the step's wall time
+  (``time/step_ms``; ``TrainResult.train_seconds`` sums the steps, evaluations excluded);
+* LR schedulers (``Trainable.schedulers``) stepped after every applied step and
+  checkpointed with the rest: tasks never step them by hand;
+* VALIDATION every ``eval_every`` steps and at the end: ``eval_fn`` must read the
+  validation split only (the test split is read once, by the task, after :func:`train`
+  returns; :func:`log_test` logs it). Its figures go to TensorBoard as ``val/<name>`` and
+  into ``TrainResult.history``; images it returns under the key ``"images"`` (a dict of
+  tag -> (H, W, 3) in [0, 1]) are logged as ``val/<tag>``;
+* a time budget: with ``time_budget`` > 0 (seconds of the task's wall time, measured by
+  ``ctx.stopwatch``) the loop stops early enough that the final validation and the
+  ``reserve`` seconds the task needs afterwards (test evaluation, artefacts) still fit;
 * a NaN/Inf guard: a non-finite loss or gradient skips the step (nothing is applied) and
   is logged; after ``max_bad_steps`` consecutive failures the last good state is restored;
 * checkpoints (``checkpoint.pt``, written atomically, never with non-finite parameters)
@@ -23,6 +33,7 @@ import copy
 import math
 import os
 import signal
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +58,7 @@ class Trainable:
     modules: Dict[str, torch.nn.Module]
     optimizer: torch.optim.Optimizer
     extra: Dict[str, Any] = field(default_factory=dict)
+    schedulers: List[Any] = field(default_factory=list)  # stepped by the loop after each applied step
 
     def parameters(self) -> List[torch.nn.Parameter]:
         return [p for m in self.modules.values() for p in m.parameters()]
@@ -56,12 +68,15 @@ class Trainable:
             "modules": {k: m.state_dict() for k, m in self.modules.items()},
             "optimizer": self.optimizer.state_dict(),
             "extra": {k: (v.state_dict() if hasattr(v, "state_dict") else v) for k, v in self.extra.items()},
+            "schedulers": [s.state_dict() for s in self.schedulers],
         }
 
     def load_state_dict(self, state: Dict[str, Any]) -> None:
         for k, m in self.modules.items():
             m.load_state_dict(state["modules"][k])
         self.optimizer.load_state_dict(state["optimizer"])
+        for sched, sd in zip(self.schedulers, state.get("schedulers", [])):
+            sched.load_state_dict(sd)
         for k, v in state.get("extra", {}).items():
             if k in self.extra and hasattr(self.extra[k], "load_state_dict"):
                 self.extra[k].load_state_dict(v)
@@ -84,6 +99,22 @@ class TrainResult:
     skipped_steps: int
     restores: int
     history: List[Dict[str, float]] = field(default_factory=list)
+    train_seconds: float = 0.0      # wall seconds of the steps run in this process (evaluation excluded)
+    steps_run: int = 0              # steps run in this process (a resumed run counts from its start)
+    budget_stop: bool = False       # stopped by ``time_budget`` before ``iters``
+
+    @property
+    def seconds_per_step(self) -> float:
+        return self.train_seconds / max(1, self.steps_run)
+
+    def val_metrics(self, digits: int = 4) -> Dict[str, float]:
+        """The last validation figures as ``val_<name>`` (``seconds`` left out)."""
+        return {f"val_{k}": round(float(v), digits) for k, v in self.metrics.items() if k != "seconds"}
+
+    def timing(self) -> Dict[str, float]:
+        """``iters``, ``train_seconds`` and ``seconds_per_step`` for metrics.json."""
+        return {"iters": self.step, "train_seconds": round(self.train_seconds, 3),
+                "seconds_per_step": round(self.seconds_per_step, 5)}
 
     def history_rows(self, digits: int = 5) -> List[Dict[str, float]]:
         """Every evaluation of the run, resumed parts included, as {"step": s, metric: value}."""
@@ -150,24 +181,30 @@ def _grads_finite(params: List[torch.nn.Parameter]) -> bool:
 
 
 def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Tensor]],
-          iters: int, eval_fn: Optional[Callable[[int], Dict[str, float]]] = None,
+          iters: int, eval_fn: Optional[Callable[[int], Dict[str, Any]]] = None,
           eval_every: int = 0, checkpoint_every: int = 0, resume: bool = False,
           max_bad_steps: int = 5, desc: str = "train", log_every: int = 10,
-          after_step: Optional[Callable[[int], None]] = None) -> TrainResult:
+          after_step: Optional[Callable[[int], None]] = None,
+          time_budget: float = 0.0, reserve: float = 0.0) -> TrainResult:
     """Run ``iters`` optimisation steps.
 
     Args:
         ctx: the run's :class:`~l3d_app.runtime.context.RunContext`.
-        trainable: modules + optimiser (+ extra state) to train and checkpoint.
+        trainable: modules + optimiser (+ schedulers, extra state) to train and checkpoint.
         step_fn: ``step_fn(step) -> {"loss": scalar tensor, other logs...}``; computes the
-            loss (the loop calls ``zero_grad``, ``backward`` and ``optimizer.step``).
+            loss (the loop calls ``zero_grad``, ``backward``, ``optimizer.step`` and steps
+            the schedulers).
         iters: total number of steps (a resumed run continues up to the same total).
-        eval_fn: ``eval_fn(step) -> {metric: float}``, called every ``eval_every`` steps
-            and after the last step; logged under ``eval/`` with ``time/seconds``.
+        eval_fn: ``eval_fn(step) -> {metric: float, "images": {tag: (H, W, 3)}}`` on the
+            VALIDATION split, called every ``eval_every`` steps and after the last step;
+            logged under ``val/`` with ``time/seconds``.
         checkpoint_every: steps between checkpoints (0: only at the end / on a signal).
         resume: continue from ``checkpoint.pt`` in ``ctx.out_dir`` when it exists.
         max_bad_steps: consecutive non-finite steps before the last good state is restored.
         after_step: called after each applied step (e.g. to update an occupancy grid).
+        time_budget: > 0: wall seconds for the whole task (``ctx.stopwatch.elapsed``); the
+            loop stops when the next step, the final validation and ``reserve`` would not fit.
+        reserve: seconds the task needs after the loop (test evaluation, artefacts).
     """
     params = trainable.parameters()
     ckpt_path = ctx.out_dir / CHECKPOINT
@@ -184,9 +221,11 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
     step = start
     stop = _StopFlag()
     stop_at = int(os.environ["L3D_STOP_AT_STEP"]) if os.environ.get("L3D_STOP_AT_STEP") else None
+    clock = _LoopClock(float(time_budget or 0.0), float(reserve or 0.0))
     with stop.installed():
         bar = progress(range(start, iters), desc=desc, total=iters, initial=start)
         for step in bar:
+            t0 = time.perf_counter()
             trainable.optimizer.zero_grad(set_to_none=True)
             logs = step_fn(step)
             loss = logs["loss"]
@@ -209,16 +248,20 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                     ctx.logger.scalar("guard/restores", restores, step)
             else:
                 bad_in_a_row = 0
+                for sched in trainable.schedulers:
+                    sched.step()
                 if after_step is not None:
                     after_step(step)
-                if step % log_every == 0 or step == iters - 1:
-                    values = {f"train/{k}": float(v.detach()) for k, v in logs.items()
-                              if torch.is_tensor(v) and v.numel() == 1}
-                    ctx.logger.log_scalars(values, step)
-                    bar.set_postfix(loss=f"{float(loss.detach()):.4g}")
+            clock.add_step(time.perf_counter() - t0)
+            if ok and (step % log_every == 0 or step == iters - 1):
+                values = {f"train/{k}": float(v.detach()) for k, v in logs.items()
+                          if torch.is_tensor(v) and v.numel() == 1}
+                values["time/step_ms"] = 1000.0 * clock.last_step
+                ctx.logger.log_scalars(values, step)
+                bar.set_postfix(loss=f"{float(loss.detach()):.4g}")
             done = step + 1
             if eval_fn is not None and eval_every and done % eval_every == 0 and done < iters:
-                metrics = _evaluate(ctx, eval_fn, done, history)
+                metrics = clock.timed_eval(lambda: _evaluate(ctx, eval_fn, done, history))
             if ok and done % snapshot_every == 0:
                 good_state = copy.deepcopy(trainable.state_dict())
             if checkpoint_every and done % checkpoint_every == 0:
@@ -227,24 +270,73 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                 stop.signal = signal.SIGINT  # test hook: behave as if interrupted here
             if stop.signal is not None:
                 break
+            if done < iters and clock.out_of_time(ctx.stopwatch.elapsed, eval_fn is not None):
+                clock.budget_stop = True
+                ctx.logger.text("train/budget", f"time budget {time_budget:g} s: stopped at step {done}")
+                break
         bar.close()
     done = step + 1 if iters > start else start
     interrupted = stop.signal is not None and done < iters
     if eval_fn is not None and (not history["eval"] or history["eval"][-1][0] != done):
-        metrics = _evaluate(ctx, eval_fn, done, history)
+        metrics = clock.timed_eval(lambda: _evaluate(ctx, eval_fn, done, history))
     save_checkpoint(ckpt_path, trainable, done, ctx.generator, history)
     if interrupted:
         ctx.interrupted = True
         ctx.logger.text("train/interrupted", f"stopped by signal {stop.signal} at step {done}")
     return TrainResult(step=done, metrics=metrics, interrupted=interrupted,
-                       skipped_steps=skipped, restores=restores, history=list(history["eval"]))
+                       skipped_steps=skipped, restores=restores, history=list(history["eval"]),
+                       train_seconds=clock.train_seconds, steps_run=clock.steps,
+                       budget_stop=clock.budget_stop)
+
+
+class _LoopClock:
+    """Step and evaluation timings, and the time-budget test."""
+
+    def __init__(self, budget: float, reserve: float):
+        self.budget, self.reserve = budget, reserve
+        self.train_seconds, self.steps, self.last_step = 0.0, 0, 0.0
+        self.eval_seconds, self.evals = 0.0, 0
+        self.budget_stop = False
+
+    def add_step(self, seconds: float) -> None:
+        self.train_seconds += seconds
+        self.steps += 1
+        self.last_step = seconds
+
+    def timed_eval(self, fn: Callable[[], Dict[str, float]]) -> Dict[str, float]:
+        t0 = time.perf_counter()
+        out = fn()
+        self.eval_seconds += time.perf_counter() - t0
+        self.evals += 1
+        return out
+
+    def out_of_time(self, elapsed: float, has_eval: bool) -> bool:
+        """True when one more step plus the final validation and the reserve would pass the budget."""
+        if self.budget <= 0:
+            return False
+        final_eval = self.eval_seconds / self.evals if (has_eval and self.evals) else 0.0
+        step = self.train_seconds / max(1, self.steps)
+        return elapsed + step + final_eval + self.reserve >= self.budget
 
 
 def _evaluate(ctx, eval_fn, step: int, history: Dict[str, Any]) -> Dict[str, float]:
     with torch.no_grad():
-        metrics = {k: float(v) for k, v in eval_fn(step).items()}
+        out = dict(eval_fn(step))
+    images = out.pop("images", None) or {}
+    metrics = {k: float(v) for k, v in out.items()}
     metrics["seconds"] = ctx.stopwatch.elapsed
     history["eval"].append((step, metrics))
-    ctx.logger.log_scalars({f"eval/{k}": v for k, v in metrics.items()
+    ctx.logger.log_scalars({f"val/{k}": v for k, v in metrics.items()
                             if math.isfinite(v) and k != "seconds"}, step)
+    for tag, image in images.items():
+        ctx.logger.image(f"val/{tag}", image, step)
     return metrics
+
+
+def log_test(ctx, metrics: Dict[str, Any], step: int, images: Optional[Dict[str, Any]] = None) -> None:
+    """Log the once-only test figures (``test/<name>``) and pictures at the final ``step``."""
+    ctx.logger.log_scalars({f"test/{k}": float(v) for k, v in metrics.items()
+                            if isinstance(v, (int, float)) and not isinstance(v, bool)
+                            and math.isfinite(float(v))}, step)
+    for tag, image in (images or {}).items():
+        ctx.logger.image(f"test/{tag}", image, step)

@@ -81,7 +81,7 @@ def box(cfg, ctx) -> dict:
     iters = int(cfg.iters)
     gamma = float(cfg.lr_final_factor) ** (1.0 / max(iters, 1))
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
-    trainable = Trainable({"box": model}, opt, extra={"scheduler": sched})
+    trainable = Trainable({"box": model}, opt, schedulers=[sched])
     render_kw = dict(n_samples=int(cfg.n_samples), near=float(cfg.near), far=float(cfg.far))
     gt_c = torch.tensor(list(cfg.true_center), dtype=torch.float32, device=ctx.device)
     gt_s = torch.tensor(list(cfg.true_size), dtype=torch.float32, device=ctx.device)
@@ -106,7 +106,7 @@ def box(cfg, ctx) -> dict:
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, iters, eval_fn=eval_fn, eval_every=int(cfg.eval_every),
                        checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume),
-                       desc="box", after_step=lambda s: sched.step())
+                       desc="box")
     with torch.no_grad():
         final = render_views(1)
         final_psnr = float(psnr(final, target))

@@ -44,7 +44,7 @@ def fit_mesh(cfg, ctx) -> dict:
     holder = torch.nn.ParameterDict({"offsets": offsets})
     opt = torch.optim.Adam(holder.parameters(), lr=float(cfg.lr))
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=int(cfg.iters), eta_min=float(cfg.lr_final))
-    trainable = Trainable({"mesh": holder}, opt, extra={"scheduler": sched})
+    trainable = Trainable({"mesh": holder}, opt, schedulers=[sched])
     weights = {k: float(cfg[k]) for k in ("w_chamfer", "w_smooth", "w_normal", "w_edge")}
     faces, s = source.faces, int(cfg.num_samples)
 
@@ -71,8 +71,7 @@ def fit_mesh(cfg, ctx) -> dict:
 
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step, int(cfg.iters), evaluate, int(cfg.eval_every),
-                       int(cfg.checkpoint_every), bool(cfg.resume), desc="fit_mesh",
-                       after_step=lambda _i: sched.step())
+                       int(cfg.checkpoint_every), bool(cfg.resume), desc="fit_mesh")
     final = evaluate(result.step)
     with torch.no_grad():
         out_mesh = source.with_verts((source.verts + holder["offsets"]).detach().clone())

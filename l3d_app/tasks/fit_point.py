@@ -50,7 +50,7 @@ def fit_point(cfg, ctx) -> dict:
     holder = torch.nn.ParameterDict({"points": points})
     opt = torch.optim.Adam(holder.parameters(), lr=float(cfg.lr))
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=int(cfg.iters), eta_min=float(cfg.lr_final))
-    trainable = Trainable({"cloud": holder}, opt, extra={"scheduler": sched})
+    trainable = Trainable({"cloud": holder}, opt, schedulers=[sched])
 
     def step(_i):
         target = sample_points_on_mesh(target_mesh, n, ctx.generator).points
@@ -62,8 +62,7 @@ def fit_point(cfg, ctx) -> dict:
 
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step, int(cfg.iters), evaluate, int(cfg.eval_every),
-                       int(cfg.checkpoint_every), bool(cfg.resume), desc="fit_point",
-                       after_step=lambda _i: sched.step())
+                       int(cfg.checkpoint_every), bool(cfg.resume), desc="fit_point")
     final = evaluate(result.step)
     with ctx.stopwatch.stage("render"):
         side_by_side_turntable(cfg, ctx, PointCloud(holder["points"].detach().clone()),

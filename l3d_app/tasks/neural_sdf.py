@@ -56,7 +56,7 @@ def neural_sdf(cfg, ctx) -> dict:
     opt = torch.optim.Adam(net.parameters(), lr=float(cfg.lr))
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, int(cfg.iters)),
                                                        eta_min=float(cfg.lr) * 0.05)
-    trainable = Trainable({"sdf": net}, opt, extra={"scheduler": sched})
+    trainable = Trainable({"sdf": net}, opt, schedulers=[sched])
     n = int(cfg.batch_points)
     centre = 0.5 * (lo + hi)
 
@@ -79,8 +79,7 @@ def neural_sdf(cfg, ctx) -> dict:
 
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
-                       checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="neural_sdf",
-                       after_step=lambda step: sched.step())
+                       checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="neural_sdf")
     metrics: Dict[str, float] = {"iters": result.step, "n_params": sum(p.numel() for p in net.parameters()),
                                  "n_points": int(points.shape[0]),
                                  "surface_abs": round(result.metrics.get("surface_abs", float("nan")), 6)}

@@ -196,7 +196,7 @@ def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Di
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, iters) / iters)) * 0.98 + 0.02)
     best = torch.tensor([-1.0, -1.0])  # (accuracy, epoch), checkpointed with the run
-    trainable = Trainable({"model": model}, opt, extra={"scheduler": sched, "best": best})
+    trainable = Trainable({"model": model}, opt, extra={"best": best}, schedulers=[sched])
     n_sub = int(cfg.train_points)
     axis = str(cfg.rotation_axis)
     aug_deg = float(cfg.augment_degrees) if cfg.augment_rotation else 0.0
@@ -243,8 +243,7 @@ def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Di
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, iters, eval_fn=eval_fn, eval_every=spe_eval,
                        checkpoint_every=steps_per_epoch * int(cfg.checkpoint_every_epochs or 0),
-                       resume=bool(cfg.resume), desc=f"pointnet_{kind}",
-                       after_step=lambda s: sched.step())
+                       resume=bool(cfg.resume), desc=f"pointnet_{kind}")
     if dist.is_main and ctx.path(BEST).exists() and cfg.use_best:
         model.load_state_dict(torch.load(ctx.path(BEST), map_location="cpu", weights_only=False)["state"])
     model.eval()

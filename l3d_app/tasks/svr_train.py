@@ -35,7 +35,7 @@ def svr_train(cfg, ctx) -> dict:
     opt = torch.optim.Adam(model.parameters(), lr=float(cfg.lr))
     iters = int(cfg.iters)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=iters, eta_min=float(cfg.lr) * 0.05)
-    trainable = Trainable({"model": model}, opt, extra={"scheduler": sched})
+    trainable = Trainable({"model": model}, opt, schedulers=[sched])
     train_ids, V, B = data.train, data.images.shape[1], int(cfg.batch_size)
     quick = data.test[: int(cfg.quick_eval_objects)]
     quick_views = torch.zeros_like(quick)
@@ -57,8 +57,7 @@ def svr_train(cfg, ctx) -> dict:
 
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step, iters, evaluate if int(cfg.eval_every) > 0 else None,
-                       int(cfg.eval_every), int(cfg.checkpoint_every), bool(cfg.resume), desc="svr_train",
-                       after_step=lambda _i: sched.step())
+                       int(cfg.eval_every), int(cfg.checkpoint_every), bool(cfg.resume), desc="svr_train")
     meta = {"encoder_cfg": encoder_cfg, "decoder_cfg": decoder_cfg, "geometry": geometry,
             "data_cfg": plain(cfg.data), "step": result.step}
     save_model(ctx.path(MODEL_FILE), model, meta)

@@ -83,7 +83,7 @@ def train_prior(cfg, ctx) -> dict:
     opt = torch.optim.AdamW(params, lr=float(cfg.lr), weight_decay=0.0)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_factor(str(cfg.lr_decay), int(cfg.iters), ae_iters))
     modules = {**live, **{f"{s}_ema": m for s, m in ema.items()}}
-    trainable = Trainable(modules, opt, extra={"sched": sched})
+    trainable = Trainable(modules, opt, schedulers=[sched])
     prompts = full_prompts(max(1, int(cfg.eval_prompts) // 3))
 
     def step(i: int) -> Dict[str, torch.Tensor]:
@@ -107,7 +107,6 @@ def train_prior(cfg, ctx) -> dict:
         return logs
 
     def after(i: int) -> None:
-        sched.step()
         for s in spaces:
             # the autoencoder is copied, not averaged: the latent U-Net must see the frozen one
             _ema_update(ema[s], live[s], 0.0 if i < ae_iters + 10 and s == "latent" else float(cfg.ema_decay))
