@@ -24,8 +24,8 @@ from typing import Dict, Optional
 import torch
 import torch.nn.functional as F
 
-from l3d_app.data.prompt_images import (ANY, BACKGROUND_NAMES, BACKGROUNDS, COLOUR_NAMES, COLOURS,
-                                        SHAPES, parse_prompt)
+from l3d_app.prompt_vocab import (ANY, BACKGROUND_NAMES, BACKGROUNDS, COLOUR_NAMES, COLOURS,
+                                 SHAPES, parse_prompt)
 
 FILL_RATIOS = torch.tensor([math.pi / 4, 1.0, 0.5])  # circle, square, triangle (SHAPES order)
 
