@@ -55,6 +55,9 @@ KNOWN: Dict[tuple, str] = {
     ("layers", "l3d_app.diffusion.sampling"): "course (diffusion.sampling <-> losses.sds)",
     ("layers", "l3d_app.models.svr_decoders"): "points (models -> data, losses, metrics)",
     ("layers", "l3d_app.models.svr_pseudo"): "points (models -> losses.occupancy)",
+    ("layers", "l3d_app.metrics.surface_scores"): "rays: tasks/volsdf.py must pass depth_maps="
+                                                  "render.rgbd.true_depth_maps(truth, cams, scale=4); "
+                                                  "then house's temporary render fallback goes",
     ("no_task_imports_task", "l3d_app.tasks.sds_nerf"): "rays (sds_nerf -> sds_mesh; the helpers now "
                                                          "live in tasks/prior_common and metrics.prompt_match)",
     ("no_task_imports_task", "l3d_app.tasks.pointnet_cls"): "points (-> point_learning)",

@@ -48,12 +48,14 @@ def surface_scores(pred: Mesh, truth: Mesh, cameras: Optional[Cameras] = None, n
     seen by them (:func:`l3d_app.render.rgbd.true_depth_maps`, e.g. at 4x their resolution),
     also the observed-surface variants. CPU, float64.
 
-    Raises:
-        TypeError: ``cameras`` without ``depth_maps`` (metrics do not render).
+    ``cameras`` without ``depth_maps`` still works for now (the depth is rendered here at 4x)
+    but is deprecated: metrics do not render. It goes once volsdf passes ``depth_maps``
+    (tests/test_architecture.py lists it as a known violation).
     """
     if cameras is not None and depth_maps is None:
-        raise TypeError("surface_scores: the observed variants need depth_maps="
-                        "l3d_app.render.rgbd.true_depth_maps(truth, cameras, scale=4)")
+        from l3d_app.render.rgbd import true_depth_maps  # TEMPORARY bridge for tasks/volsdf.py
+
+        depth_maps = true_depth_maps(truth.to("cpu"), cameras.to("cpu"), scale=4)
     pred, truth = pred.to("cpu"), truth.to("cpu")
     gen = torch.Generator().manual_seed(int(seed))
     ps = sample_surface(pred, int(n), generator=gen).points
