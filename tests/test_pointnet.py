@@ -46,9 +46,11 @@ def tiny(cache_dir, *extra):
 # ----------------------------------------------------------------------------- data
 
 def test_shape_parts_shapes_labels_and_cache(cache_dir):
-    data = shape_parts(train_per_class=3, test_per_class=2, num_points=500, cache_dir=str(cache_dir))
+    data = shape_parts(train_per_class=3, test_per_class=2, num_points=500, cache_dir=str(cache_dir),
+                       val_fraction=0.0)
     assert data.train.points.shape == (9, 500, 3) and data.test.points.shape == (6, 500, 3)
     assert data.train.parts.shape == (9, 500) and data.train.labels.tolist() == [0, 0, 0, 1, 1, 1, 2, 2, 2]
+    assert len(data.val) == 0
     assert data.class_names == list(CLASS_NAMES) and len(data.part_names) == 10
     radius = data.train.points.norm(dim=-1).max(dim=1).values
     assert torch.allclose(radius, torch.ones(9), atol=1e-5)
@@ -69,6 +71,37 @@ def test_shape_parts_shapes_labels_and_cache(cache_dir):
     # objects vary: two chairs differ in extent
     ext = data.train.points[:3].amax(1) - data.train.points[:3].amin(1)
     assert (ext[0] - ext[1]).abs().max() > 1e-3
+
+
+def test_val_split_is_seeded_stratified_and_leaves_test_alone(cache_dir):
+    from l3d_app.data.val_split import carve_val
+
+    full = shape_parts(train_per_class=10, test_per_class=2, num_points=100, cache_dir=str(cache_dir),
+                       val_fraction=0.0)
+    data = shape_parts(train_per_class=10, test_per_class=2, num_points=100, cache_dir=str(cache_dir),
+                       val_fraction=0.2, val_seed=3)
+    assert torch.equal(data.test.points, full.test.points)  # test untouched
+    assert len(data.train) == 24 and len(data.val) == 6
+    assert torch.bincount(data.val.labels).tolist() == [2, 2, 2]  # 20% of 10 per class
+    # train + val is exactly the original training set: every val cloud is one of them, none in train
+    def keys(split):
+        return {tuple(p[0].tolist()) for p in split.points}
+    assert keys(data.train) | keys(data.val) == keys(full.train) and not keys(data.train) & keys(data.val)
+    again = shape_parts(train_per_class=10, test_per_class=2, num_points=100, cache_dir=str(cache_dir),
+                        val_fraction=0.2, val_seed=3)
+    assert torch.equal(again.val.points, data.val.points)
+    other = shape_parts(train_per_class=10, test_per_class=2, num_points=100, cache_dir=str(cache_dir),
+                        val_fraction=0.2, val_seed=4)
+    assert keys(other.val) != keys(data.val)
+    # the rule itself: per class round(f * count), at least one, never the class's last item
+    labels = torch.tensor([0] * 7 + [1] * 2 + [2])
+    tr, va = carve_val(10, 0.3, seed=0, labels=labels)
+    assert sorted(torch.bincount(labels[va], minlength=3).tolist()) == [0, 1, 2]
+    assert torch.bincount(labels[va], minlength=3).tolist() == [2, 1, 0]
+    assert sorted(tr.tolist() + va.tolist()) == list(range(10))
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValueError, match="val_fraction"):
+            carve_val(10, bad)
 
 
 def test_shape_parts_bad_knobs(cache_dir):
@@ -93,10 +126,10 @@ def test_course_loader_cls_and_seg(tmp_path):
         (tmp_path / "seg").mkdir(exist_ok=True)
         np.save(tmp_path / "seg" / f"data_{split}.npy", rng.normal(size=(n, 50, 3)))
         np.save(tmp_path / "seg" / f"label_{split}.npy", rng.integers(0, 6, size=(n, 50)))
-    data = course_pointcloud(str(tmp_path), kind="cls", class_names=["chair", "vase", "lamp"])
+    data = course_pointcloud(str(tmp_path), kind="cls", class_names=["chair", "vase", "lamp"], val_fraction=0)
     assert data.train.points.shape == (5, 50, 3) and data.test.labels.tolist() == [0, 1, 2]
     assert data.class_names == ["chair", "vase", "lamp"] and data.train.parts is None
-    seg = course_pointcloud(str(tmp_path), kind="seg")
+    seg = course_pointcloud(str(tmp_path), kind="seg", val_fraction=0)
     assert seg.train.parts.shape == (5, 50) and seg.train.labels is None
     assert seg.part_names == [f"part{i}" for i in range(int(seg.train.parts.max().clamp_min(seg.test.parts.max())) + 1)]
     with pytest.raises(UserError, match="no class labels"):
@@ -122,7 +155,7 @@ def test_modelnet40_loader(tmp_path):
             f["data"] = rng.normal(size=(n, 64, 3)).astype(np.float32)
             f["label"] = (np.arange(n) % 2)[:, None].astype(np.uint8)
     (tmp_path / "shape_names.txt").write_text("airplane\nbathtub\n")
-    data = modelnet40(str(tmp_path))
+    data = modelnet40(str(tmp_path), val_fraction=0)
     assert data.train.points.shape == (4, 64, 3) and data.test.labels.tolist() == [0, 1]
     assert data.class_names == ["airplane", "bathtub"]
 
@@ -184,6 +217,12 @@ def test_task_trains_and_beats_chance(compose, cache_dir, tmp_path, task):
     assert m["accuracy"] > majority + 0.25, (m, majority)
     assert m["test_points"] == 400 and m["n_params"] > 0 and m["seconds"] > 0
     assert m["iters"] == 8 * 3 and m["best_epoch"] >= 1
+    # chosen on validation (27 train / 3 val clouds carved from the 30), test read once
+    assert m["selected_on"] == "val" and m["n_train"] == 27 and m["n_val"] == 3 and m["n_test"] == 18
+    assert 0 <= m["val_accuracy"] <= 1
+    assert max(row["accuracy"] for row in m["history"]) == pytest.approx(m["val_accuracy"], abs=1e-4)
+    best = torch.load(tmp_path / "best.pt", weights_only=False)
+    assert best["epoch"] == m["best_epoch"] and best["accuracy"] == pytest.approx(m["val_accuracy"], abs=1e-4)
     for name in ("best.pt", "checkpoint.pt", "confusion_matrix.png"):
         assert (tmp_path / name).is_file()
     gifs = list((tmp_path / "vis").glob("*.gif"))

@@ -5,8 +5,9 @@
     python main.py task=pointnet_robustness augment_rotation=true  # train with rotations
 
 For each kind (cls, seg) the model is read from its ``best.pt`` or, when none is given,
-trained first with the shared pointnet knobs (into ``cls/`` and ``seg/`` sub-folders).
-Then two tables on the test split:
+trained first with the shared pointnet knobs (into ``cls/`` and ``seg/`` sub-folders; the
+checkpoint is chosen on the validation split, never on test). Then two tables on the test
+split:
 
 * rotation: accuracy with every test cloud rotated by each of ``rotation_degrees``
   about ``rotation_axis``, evaluated on ``rotation_points`` points per cloud (0 = all);
@@ -53,7 +54,8 @@ def _model_for(cfg, ctx, kind: str):
         model, info = fit(cfg, sub_ctx, data, kind)
     finally:
         sub_ctx.logger.close()
-    return model, data, {"source": str(sub / "best.pt"), "train_seconds": info["train_seconds"]}
+    return model, data, {"source": str(sub / "best.pt"), "train_seconds": info["train_seconds"],
+                         "val_accuracy": info["val_accuracy"], "selected_on": info["selected_on"]}
 
 
 @TASKS.register("pointnet_robustness")
@@ -72,6 +74,9 @@ def pointnet_robustness(cfg, ctx) -> dict:
     for kind in kinds:
         model, data, info = _model_for(cfg, ctx, kind)
         metrics[f"{kind}_model"] = info["source"]
+        if "val_accuracy" in info:
+            metrics[f"{kind}_val_accuracy"] = info["val_accuracy"]
+            metrics["selected_on"] = info["selected_on"]
         rot_rows, pts_rows = {}, {}
         with ctx.stopwatch.stage(f"{kind}_tables"):
             mats = rotations(str(cfg.rotation_axis), degrees)
