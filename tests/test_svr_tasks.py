@@ -42,7 +42,8 @@ def test_train_resume_and_eval(compose, tmp_path, monkeypatch):
     assert 0.0 <= m["f1"] <= 1.0 and m["f1"] == m["f1@0.05"]
     curve = [m[f"f1@{t:g}"] for t in (0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.15, 0.2)]
     assert curve == sorted(curve) and curve[-1] > 0  # F1 cannot fall as the threshold grows
-    assert [row["step"] for row in m["history"]] == [3, 6]
+    assert [row["step"] for row in m["history"]] == [3, 6]  # validation objects only
+    assert m["val_objects"] == 2 and m["val_f1"] == m["history"][-1]["f1"] and "selected_on" not in m
 
     monkeypatch.setenv("L3D_STOP_AT_STEP", "3")
     with pytest.raises(RunInterrupted):
@@ -97,7 +98,7 @@ def test_f1_curve_matches_fscore_and_chamfer():
 
     from l3d_app.metrics.chamfer import chamfer_distance
     from l3d_app.metrics.fscore import fscore
-    from l3d_app.tasks.svr_common import f1_curve
+    from l3d_app.metrics.f1_curve import f1_curve
 
     g = torch.Generator().manual_seed(0)
     pred, target = torch.rand(300, 3, generator=g), torch.rand(500, 3, generator=g)

@@ -42,6 +42,8 @@ from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.transforms import axis_rotation
 from l3d_app.metrics.accuracy import accuracy, confusion_matrix
 from l3d_app.registry import DATASETS, MODELS, RENDERERS
+from l3d_app.render.charts import confusion_image
+from l3d_app.render.palette import palette
 from l3d_app.runtime import distributed
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.media import save_gif, save_png
@@ -267,44 +269,6 @@ def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Di
 
 
 # ----------------------------------------------------------------------------- pictures
-
-def palette(n: int) -> torch.Tensor:
-    """(n, 3) distinct RGB colours in [0, 1] (matplotlib tab10 / tab20 / hsv)."""
-    import matplotlib
-
-    name = "tab10" if n <= 10 else "tab20" if n <= 20 else "hsv"
-    cmap = matplotlib.colormaps[name]
-    x = np.arange(n) if name != "hsv" else np.linspace(0, 1, n, endpoint=False)
-    return torch.tensor(np.asarray(cmap(x))[:, :3], dtype=torch.float32)
-
-
-def confusion_image(cm: torch.Tensor, names: Sequence[str], title: str) -> np.ndarray:
-    """(H, W, 3) float image of a row-normalised confusion matrix with counts."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    k = cm.shape[0]
-    rows = cm.double() / cm.sum(1, keepdim=True).clamp_min(1)
-    fig, ax = plt.subplots(figsize=(2 + 0.6 * k, 1.6 + 0.6 * k), dpi=100)
-    ax.imshow(rows.numpy(), cmap="Blues", vmin=0, vmax=1)
-    if k <= 20:
-        for i in range(k):
-            for j in range(k):
-                ax.text(j, i, str(int(cm[i, j])), ha="center", va="center", fontsize=7,
-                        color="white" if rows[i, j] > 0.5 else "black")
-    ax.set_xticks(range(k), labels=list(names), rotation=60, ha="right", fontsize=7)
-    ax.set_yticks(range(k), labels=list(names), fontsize=7)
-    ax.set_xlabel("predicted")
-    ax.set_ylabel("true")
-    ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    fig.canvas.draw()
-    image = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(np.float32) / 255.0
-    plt.close(fig)
-    return image
-
 
 def _safe(name: str) -> str:
     """A label usable in a file name ('chair/seat' -> 'chair-seat')."""
