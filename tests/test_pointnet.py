@@ -254,10 +254,16 @@ def test_resume_matches_uninterrupted(compose, cache_dir, tmp_path, monkeypatch)
 
 
 def test_robustness_command(compose, cache_dir, tmp_path):
-    overrides = tiny(cache_dir, "epochs=2", "rotation_degrees=[0,90]",
-                     "num_points_list=[400,100,100000]")
+    overrides = tiny(cache_dir, "epochs=8", "rotation_degrees=[0,90]",
+                     "num_points_list=[400,100,100000]", "num_vis=0", "vis_failures=false")
     run_task(compose("task=pointnet_robustness", *overrides), out_dir=tmp_path / "a")
     m = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    # trained upright (no rotation augmentation), then shown the test clouds tipped 90 degrees
+    # about z: a model that learnt anything about upright shapes must lose accuracy. If the
+    # table applied no rotation, rot90 would equal rot0 and this would fail.
+    assert m["cls_rot0"] > 0.6 and m["cls_rot90"] < m["cls_rot0"] - 0.15, m
+    assert m["seg_rot90"] < m["seg_rot0"] - 0.15, m
+    assert m["selected_on"] == "val" and 0 <= m["cls_val_accuracy"] <= 1
     for kind in ("cls", "seg"):
         for key in ("rot0", "rot90", "pts400", "pts100"):
             assert 0.0 <= m[f"{kind}_{key}"] <= 1.0
