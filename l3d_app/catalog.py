@@ -30,6 +30,7 @@ MODULES = (
     "l3d_app.data.shape_parts",
     "l3d_app.models.pointnet",
     "l3d_app.models.dgcnn",
+    "l3d_app.models.pointnet2",
     "l3d_app.tasks.pointnet_cls",
     "l3d_app.tasks.pointnet_seg",
     "l3d_app.tasks.pointnet_robustness",

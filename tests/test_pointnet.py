@@ -348,3 +348,98 @@ def test_dgcnn_task_runs(compose, cache_dir, tmp_path):
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert 0 <= m["accuracy"] <= 1 and m["n_params"] > 0
     assert torch.load(tmp_path / "best.pt", weights_only=False)["model_cfg"]["name"] == "dgcnn"
+
+
+# ----------------------------------------------------------------------------- PointNet++
+
+def _naive_fps(xyz, m):
+    """Farthest-point sampling, one cloud, plain Python over points (float64)."""
+    pts = xyz.double().tolist()
+    chosen = [0]
+    best = [float("inf")] * len(pts)
+    for _ in range(1, m):
+        c = pts[chosen[-1]]
+        for j, p in enumerate(pts):
+            best[j] = min(best[j], sum((a - b) ** 2 for a, b in zip(p, c)))
+        far = max(range(len(pts)), key=lambda j: (best[j], -j))  # ties: the lowest index
+        chosen.append(far)
+    return chosen
+
+
+def _naive_ball(xyz, centers, radius, k):
+    pts = xyz.double().tolist()
+    out = []
+    for c in centers.double().tolist():
+        d2 = [sum((a - b) ** 2 for a, b in zip(p, c)) for p in pts]
+        inside = [j for j, d in enumerate(d2) if d <= radius ** 2][:k]
+        if not inside:
+            inside = [min(range(len(pts)), key=lambda j: d2[j])]
+        out.append(inside + [inside[0]] * (k - len(inside)))
+    return out
+
+
+def test_farthest_point_sample_matches_naive_reference():
+    from l3d_app.models.pointnet2 import farthest_point_sample
+
+    g = torch.Generator().manual_seed(0)
+    xyz = torch.rand(3, 70, 3, generator=g, dtype=torch.float64)
+    idx = farthest_point_sample(xyz, 12)
+    assert idx.tolist() == [_naive_fps(xyz[b], 12) for b in range(3)]
+    # hard case: duplicated points never get picked twice while distinct ones remain
+    dup = torch.cat([xyz[:1, :5], xyz[:1, :5]], dim=1)
+    assert len(set(farthest_point_sample(dup, 5)[0].tolist())) == 5
+    with pytest.raises(ValueError):
+        farthest_point_sample(xyz, 71)
+
+
+def test_ball_query_matches_naive_reference():
+    from l3d_app.models.pointnet2 import ball_query
+
+    g = torch.Generator().manual_seed(1)
+    xyz = torch.rand(2, 60, 3, generator=g, dtype=torch.float64)
+    centers = torch.cat([xyz[:, :4], torch.full((2, 1, 3), 5.0, dtype=torch.float64)], dim=1)  # last: far away
+    for radius, k in ((0.3, 8), (0.05, 4), (2.0, 16)):
+        idx = ball_query(xyz, centers, radius, k)
+        assert idx.shape == (2, 5, k)
+        assert idx.tolist() == [_naive_ball(xyz[b], centers[b], radius, k) for b in range(2)]
+
+
+def test_three_nn_interpolation_is_exact_at_coarse_points_and_a_partition_of_unity():
+    from l3d_app.models.pointnet2 import three_nn_interpolate
+
+    g = torch.Generator().manual_seed(2)
+    coarse = torch.rand(1, 10, 3, generator=g, dtype=torch.float64)
+    feat = torch.rand(1, 10, 4, generator=g, dtype=torch.float64)
+    at = three_nn_interpolate(coarse, coarse, feat)
+    assert torch.allclose(at, feat, atol=1e-6)
+    ones = three_nn_interpolate(torch.rand(1, 30, 3, generator=g, dtype=torch.float64), coarse,
+                                torch.ones(1, 10, 1, dtype=torch.float64))
+    assert torch.allclose(ones, torch.ones_like(ones))
+
+
+@pytest.mark.parametrize("kind", ["cls", "seg"])
+def test_pointnet2_shapes_and_gradients(kind):
+    from l3d_app.models.pointnet2 import pointnet2
+
+    torch.manual_seed(0)
+    model = pointnet2(kind, 5, sa_points=[16, 4], sa_neighbors=[8, 4], sa_widths=[[8, 16], [16, 32]],
+                      global_widths=[32, 64], cls_head=[32], seg_head=[16], fp_widths=[16])
+    out = model(torch.rand(2, 50, 3) * 2 - 1)["logits"]
+    assert out.shape == ((2, 5) if kind == "cls" else (2, 50, 5))
+    out.square().sum().backward()
+    grads = [p.grad for p in model.parameters()]
+    assert all(gr is not None and torch.isfinite(gr).all() for gr in grads)
+    with pytest.raises(UserError):
+        pointnet2(kind, 5, sa_points=[16], sa_radii=[0.2, 0.4])
+
+
+def test_pointnet2_task_beats_chance(compose, cache_dir, tmp_path):
+    cfg = compose("task=pointnet_cls", "model=pointnet2", "model.sa_points=[32,8]", "model.sa_neighbors=[16,8]",
+                  "model.sa_widths=[[16,32],[32,64]]", "model.global_widths=[64,128]", "model.cls_head=[64]",
+                  *[o for o in tiny(cache_dir, "epochs=8", "num_vis=0", "vis_failures=false",
+                                    "data.train_per_class=20")
+                    if not o.startswith("model.")])
+    run_task(cfg, out_dir=tmp_path)
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["accuracy"] > 1 / 3 + 0.25 and m["selected_on"] == "val", m
+    assert torch.load(tmp_path / "best.pt", weights_only=False)["model_cfg"]["name"] == "pointnet2"
