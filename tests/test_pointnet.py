@@ -264,6 +264,7 @@ def test_robustness_command(compose, cache_dir, tmp_path):
     assert m["cls_rot0"] > 0.6 and m["cls_rot90"] < m["cls_rot0"] - 0.15, m
     assert m["seg_rot90"] < m["seg_rot0"] - 0.15, m
     assert m["selected_on"] == "val" and 0 <= m["cls_val_accuracy"] <= 1
+    assert m["cls_ms_per_cloud"] > 0 and m["seg_n_params"] > 0
     for kind in ("cls", "seg"):
         for key in ("rot0", "rot90", "pts400", "pts100"):
             assert 0.0 <= m[f"{kind}_{key}"] <= 1.0
