@@ -46,9 +46,11 @@ def tiny(cache_dir, *extra):
 # ----------------------------------------------------------------------------- data
 
 def test_shape_parts_shapes_labels_and_cache(cache_dir):
-    data = shape_parts(train_per_class=3, test_per_class=2, num_points=500, cache_dir=str(cache_dir))
+    data = shape_parts(train_per_class=3, test_per_class=2, num_points=500, cache_dir=str(cache_dir),
+                       val_fraction=0.0)
     assert data.train.points.shape == (9, 500, 3) and data.test.points.shape == (6, 500, 3)
     assert data.train.parts.shape == (9, 500) and data.train.labels.tolist() == [0, 0, 0, 1, 1, 1, 2, 2, 2]
+    assert len(data.val) == 0
     assert data.class_names == list(CLASS_NAMES) and len(data.part_names) == 10
     radius = data.train.points.norm(dim=-1).max(dim=1).values
     assert torch.allclose(radius, torch.ones(9), atol=1e-5)
@@ -69,6 +71,37 @@ def test_shape_parts_shapes_labels_and_cache(cache_dir):
     # objects vary: two chairs differ in extent
     ext = data.train.points[:3].amax(1) - data.train.points[:3].amin(1)
     assert (ext[0] - ext[1]).abs().max() > 1e-3
+
+
+def test_val_split_is_seeded_stratified_and_leaves_test_alone(cache_dir):
+    from l3d_app.data.val_split import carve_val
+
+    full = shape_parts(train_per_class=10, test_per_class=2, num_points=100, cache_dir=str(cache_dir),
+                       val_fraction=0.0)
+    data = shape_parts(train_per_class=10, test_per_class=2, num_points=100, cache_dir=str(cache_dir),
+                       val_fraction=0.2, val_seed=3)
+    assert torch.equal(data.test.points, full.test.points)  # test untouched
+    assert len(data.train) == 24 and len(data.val) == 6
+    assert torch.bincount(data.val.labels).tolist() == [2, 2, 2]  # 20% of 10 per class
+    # train + val is exactly the original training set: every val cloud is one of them, none in train
+    def keys(split):
+        return {tuple(p[0].tolist()) for p in split.points}
+    assert keys(data.train) | keys(data.val) == keys(full.train) and not keys(data.train) & keys(data.val)
+    again = shape_parts(train_per_class=10, test_per_class=2, num_points=100, cache_dir=str(cache_dir),
+                        val_fraction=0.2, val_seed=3)
+    assert torch.equal(again.val.points, data.val.points)
+    other = shape_parts(train_per_class=10, test_per_class=2, num_points=100, cache_dir=str(cache_dir),
+                        val_fraction=0.2, val_seed=4)
+    assert keys(other.val) != keys(data.val)
+    # the rule itself: per class round(f * count), at least one, never the class's last item
+    labels = torch.tensor([0] * 7 + [1] * 2 + [2])
+    tr, va = carve_val(10, 0.3, seed=0, labels=labels)
+    assert sorted(torch.bincount(labels[va], minlength=3).tolist()) == [0, 1, 2]
+    assert torch.bincount(labels[va], minlength=3).tolist() == [2, 1, 0]
+    assert sorted(tr.tolist() + va.tolist()) == list(range(10))
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValueError, match="val_fraction"):
+            carve_val(10, bad)
 
 
 def test_shape_parts_bad_knobs(cache_dir):
@@ -93,10 +126,10 @@ def test_course_loader_cls_and_seg(tmp_path):
         (tmp_path / "seg").mkdir(exist_ok=True)
         np.save(tmp_path / "seg" / f"data_{split}.npy", rng.normal(size=(n, 50, 3)))
         np.save(tmp_path / "seg" / f"label_{split}.npy", rng.integers(0, 6, size=(n, 50)))
-    data = course_pointcloud(str(tmp_path), kind="cls", class_names=["chair", "vase", "lamp"])
+    data = course_pointcloud(str(tmp_path), kind="cls", class_names=["chair", "vase", "lamp"], val_fraction=0)
     assert data.train.points.shape == (5, 50, 3) and data.test.labels.tolist() == [0, 1, 2]
     assert data.class_names == ["chair", "vase", "lamp"] and data.train.parts is None
-    seg = course_pointcloud(str(tmp_path), kind="seg")
+    seg = course_pointcloud(str(tmp_path), kind="seg", val_fraction=0)
     assert seg.train.parts.shape == (5, 50) and seg.train.labels is None
     assert seg.part_names == [f"part{i}" for i in range(int(seg.train.parts.max().clamp_min(seg.test.parts.max())) + 1)]
     with pytest.raises(UserError, match="no class labels"):
@@ -122,7 +155,7 @@ def test_modelnet40_loader(tmp_path):
             f["data"] = rng.normal(size=(n, 64, 3)).astype(np.float32)
             f["label"] = (np.arange(n) % 2)[:, None].astype(np.uint8)
     (tmp_path / "shape_names.txt").write_text("airplane\nbathtub\n")
-    data = modelnet40(str(tmp_path))
+    data = modelnet40(str(tmp_path), val_fraction=0)
     assert data.train.points.shape == (4, 64, 3) and data.test.labels.tolist() == [0, 1]
     assert data.class_names == ["airplane", "bathtub"]
 
@@ -184,6 +217,12 @@ def test_task_trains_and_beats_chance(compose, cache_dir, tmp_path, task):
     assert m["accuracy"] > majority + 0.25, (m, majority)
     assert m["test_points"] == 400 and m["n_params"] > 0 and m["seconds"] > 0
     assert m["iters"] == 8 * 3 and m["best_epoch"] >= 1
+    # chosen on validation (27 train / 3 val clouds carved from the 30), test read once
+    assert m["selected_on"] == "val" and m["n_train"] == 27 and m["n_val"] == 3 and m["n_test"] == 18
+    assert 0 <= m["val_accuracy"] <= 1
+    assert max(row["accuracy"] for row in m["history"]) == pytest.approx(m["val_accuracy"], abs=1e-4)
+    best = torch.load(tmp_path / "best.pt", weights_only=False)
+    assert best["epoch"] == m["best_epoch"] and best["accuracy"] == pytest.approx(m["val_accuracy"], abs=1e-4)
     for name in ("best.pt", "checkpoint.pt", "confusion_matrix.png"):
         assert (tmp_path / name).is_file()
     gifs = list((tmp_path / "vis").glob("*.gif"))
@@ -215,10 +254,17 @@ def test_resume_matches_uninterrupted(compose, cache_dir, tmp_path, monkeypatch)
 
 
 def test_robustness_command(compose, cache_dir, tmp_path):
-    overrides = tiny(cache_dir, "epochs=2", "rotation_degrees=[0,90]",
-                     "num_points_list=[400,100,100000]")
+    overrides = tiny(cache_dir, "epochs=8", "rotation_degrees=[0,90]",
+                     "num_points_list=[400,100,100000]", "num_vis=0", "vis_failures=false")
     run_task(compose("task=pointnet_robustness", *overrides), out_dir=tmp_path / "a")
     m = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    # trained upright (no rotation augmentation), then shown the test clouds tipped 90 degrees
+    # about z: a model that learnt anything about upright shapes must lose accuracy. If the
+    # table applied no rotation, rot90 would equal rot0 and this would fail.
+    assert m["cls_rot0"] > 0.6 and m["cls_rot90"] < m["cls_rot0"] - 0.15, m
+    assert m["seg_rot90"] < m["seg_rot0"] - 0.15, m
+    assert m["selected_on"] == "val" and 0 <= m["cls_val_accuracy"] <= 1
+    assert m["cls_ms_per_cloud"] > 0 and m["seg_n_params"] > 0
     for kind in ("cls", "seg"):
         for key in ("rot0", "rot90", "pts400", "pts100"):
             assert 0.0 <= m[f"{kind}_{key}"] <= 1.0
@@ -303,3 +349,98 @@ def test_dgcnn_task_runs(compose, cache_dir, tmp_path):
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert 0 <= m["accuracy"] <= 1 and m["n_params"] > 0
     assert torch.load(tmp_path / "best.pt", weights_only=False)["model_cfg"]["name"] == "dgcnn"
+
+
+# ----------------------------------------------------------------------------- PointNet++
+
+def _naive_fps(xyz, m):
+    """Farthest-point sampling, one cloud, plain Python over points (float64)."""
+    pts = xyz.double().tolist()
+    chosen = [0]
+    best = [float("inf")] * len(pts)
+    for _ in range(1, m):
+        c = pts[chosen[-1]]
+        for j, p in enumerate(pts):
+            best[j] = min(best[j], sum((a - b) ** 2 for a, b in zip(p, c)))
+        far = max(range(len(pts)), key=lambda j: (best[j], -j))  # ties: the lowest index
+        chosen.append(far)
+    return chosen
+
+
+def _naive_ball(xyz, centers, radius, k):
+    pts = xyz.double().tolist()
+    out = []
+    for c in centers.double().tolist():
+        d2 = [sum((a - b) ** 2 for a, b in zip(p, c)) for p in pts]
+        inside = [j for j, d in enumerate(d2) if d <= radius ** 2][:k]
+        if not inside:
+            inside = [min(range(len(pts)), key=lambda j: d2[j])]
+        out.append(inside + [inside[0]] * (k - len(inside)))
+    return out
+
+
+def test_farthest_point_sample_matches_naive_reference():
+    from l3d_app.models.pointnet2 import farthest_point_sample
+
+    g = torch.Generator().manual_seed(0)
+    xyz = torch.rand(3, 70, 3, generator=g, dtype=torch.float64)
+    idx = farthest_point_sample(xyz, 12)
+    assert idx.tolist() == [_naive_fps(xyz[b], 12) for b in range(3)]
+    # hard case: duplicated points never get picked twice while distinct ones remain
+    dup = torch.cat([xyz[:1, :5], xyz[:1, :5]], dim=1)
+    assert len(set(farthest_point_sample(dup, 5)[0].tolist())) == 5
+    with pytest.raises(ValueError):
+        farthest_point_sample(xyz, 71)
+
+
+def test_ball_query_matches_naive_reference():
+    from l3d_app.models.pointnet2 import ball_query
+
+    g = torch.Generator().manual_seed(1)
+    xyz = torch.rand(2, 60, 3, generator=g, dtype=torch.float64)
+    centers = torch.cat([xyz[:, :4], torch.full((2, 1, 3), 5.0, dtype=torch.float64)], dim=1)  # last: far away
+    for radius, k in ((0.3, 8), (0.05, 4), (2.0, 16)):
+        idx = ball_query(xyz, centers, radius, k)
+        assert idx.shape == (2, 5, k)
+        assert idx.tolist() == [_naive_ball(xyz[b], centers[b], radius, k) for b in range(2)]
+
+
+def test_three_nn_interpolation_is_exact_at_coarse_points_and_a_partition_of_unity():
+    from l3d_app.models.pointnet2 import three_nn_interpolate
+
+    g = torch.Generator().manual_seed(2)
+    coarse = torch.rand(1, 10, 3, generator=g, dtype=torch.float64)
+    feat = torch.rand(1, 10, 4, generator=g, dtype=torch.float64)
+    at = three_nn_interpolate(coarse, coarse, feat)
+    assert torch.allclose(at, feat, atol=1e-6)
+    ones = three_nn_interpolate(torch.rand(1, 30, 3, generator=g, dtype=torch.float64), coarse,
+                                torch.ones(1, 10, 1, dtype=torch.float64))
+    assert torch.allclose(ones, torch.ones_like(ones))
+
+
+@pytest.mark.parametrize("kind", ["cls", "seg"])
+def test_pointnet2_shapes_and_gradients(kind):
+    from l3d_app.models.pointnet2 import pointnet2
+
+    torch.manual_seed(0)
+    model = pointnet2(kind, 5, sa_points=[16, 4], sa_neighbors=[8, 4], sa_widths=[[8, 16], [16, 32]],
+                      global_widths=[32, 64], cls_head=[32], seg_head=[16], fp_widths=[16])
+    out = model(torch.rand(2, 50, 3) * 2 - 1)["logits"]
+    assert out.shape == ((2, 5) if kind == "cls" else (2, 50, 5))
+    out.square().sum().backward()
+    grads = [p.grad for p in model.parameters()]
+    assert all(gr is not None and torch.isfinite(gr).all() for gr in grads)
+    with pytest.raises(UserError):
+        pointnet2(kind, 5, sa_points=[16], sa_radii=[0.2, 0.4])
+
+
+def test_pointnet2_task_beats_chance(compose, cache_dir, tmp_path):
+    cfg = compose("task=pointnet_cls", "model=pointnet2", "model.sa_points=[32,8]", "model.sa_neighbors=[16,8]",
+                  "model.sa_widths=[[16,32],[32,64]]", "model.global_widths=[64,128]", "model.cls_head=[64]",
+                  *[o for o in tiny(cache_dir, "epochs=8", "num_vis=0", "vis_failures=false",
+                                    "data.train_per_class=20")
+                    if not o.startswith("model.")])
+    run_task(cfg, out_dir=tmp_path)
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["accuracy"] > 1 / 3 + 0.25 and m["selected_on"] == "val", m
+    assert torch.load(tmp_path / "best.pt", weights_only=False)["model_cfg"]["name"] == "pointnet2"

@@ -13,7 +13,8 @@ from l3d_app.losses.mesh_regularizers import laplacian_smoothing
 from l3d_app.models.svr_decoders import sample_meshes
 from l3d_app.models.svr_encoder import ImageEncoder
 from l3d_app.models.svr_pseudo import fixed_cameras
-from l3d_app.tasks.svr_common import build_model
+from l3d_app.losses.svr import svr_loss
+from l3d_app.models.svr_model import build_svr_model as build_model
 
 GEOM = {"voxel_size": 16, "distance": 2.5, "fov": 50.0, "image_size": 16}
 ENC = {"width": 8, "max_width": 32, "latent_dim": 32}
@@ -50,7 +51,7 @@ def test_decoder_loss_grads_and_points(dec):
     model = build_model(ENC, dec, GEOM)
     batch = fake_batch()
     g = torch.Generator().manual_seed(1)
-    logs = model.decoder.loss(model(batch["images"]), batch, g)
+    logs = svr_loss(model.decoder, model(batch["images"]), batch, g)
     assert torch.isfinite(logs["loss"]) and logs["loss"].dim() == 0
     logs["loss"].backward()
     grads = [p.grad for p in model.parameters() if p.grad is not None]
@@ -123,7 +124,7 @@ def test_tiny_overfit_point_decoder():
     losses = []
     for _ in range(30):
         opt.zero_grad()
-        loss = model.decoder.loss(model(batch["images"]), batch, torch.Generator().manual_seed(0))["loss"]
+        loss = svr_loss(model.decoder, model(batch["images"]), batch, torch.Generator().manual_seed(0))["loss"]
         loss.backward()
         opt.step()
         losses.append(float(loss))

@@ -27,7 +27,9 @@ def test_shapes_and_splits(tiny):
     assert data.points.shape == (N, 256, 3) and data.voxels.shape == (N, 16, 16, 16)
     assert data.voxels.dtype == torch.bool and data.occ_labels.shape == (N, 256)
     assert data.depth.shape == (N, 3, 16, 16)
-    assert data.train.tolist() == [0, 1, 3, 4, 6, 7] and data.test.tolist() == [2, 5, 8]
+    # val carved from the 2 training objects of each class (one each), test untouched
+    assert sorted(data.train.tolist() + data.val.tolist()) == [0, 1, 3, 4, 6, 7] and data.test.tolist() == [2, 5, 8]
+    assert sorted(data.labels[data.val].tolist()) == [0, 1, 2] and len(data.train) == 3
     assert data.labels.tolist() == [0, 0, 0, 1, 1, 1, 2, 2, 2]
     # canonical frame: inside the unit sphere, farthest vertex at 1, images in [0, 1]
     assert float(data.verts.norm(dim=-1).max()) == pytest.approx(1.0, abs=1e-5)

@@ -1,7 +1,10 @@
 """Labelled point-cloud datasets: one container and the loaders for real formats.
 
-A dataset is two :class:`PointSplit` (train, test) of equal-size clouds with class labels
-(classification) and/or per-point part labels (segmentation), plus the label names.
+A dataset is three :class:`PointSplit` (train, val, test) of equal-size clouds with class
+labels (classification) and/or per-point part labels (segmentation), plus the label names.
+Every source ships train and test only; the validation split is carved from train by
+:meth:`PointCloudData.with_val` (``data.val_fraction`` of it, stratified by class, fixed by
+``data.val_seed``), so the test split stays untouched and is read once by the tasks.
 
 Sources (``data=...``):
 
@@ -26,6 +29,7 @@ from typing import List, Optional, Sequence
 import numpy as np
 import torch
 
+from l3d_app.data.val_split import carve_val
 from l3d_app.errors import UserError
 from l3d_app.registry import DATASETS
 
@@ -70,13 +74,19 @@ class PointSplit:
             raise UserError(f"this dataset has no {what}, needed by the {kind} task")
         return out
 
+    def subset(self, index: torch.Tensor) -> "PointSplit":
+        """The clouds at ``index`` (long tensor) as a new split."""
+        pick = (lambda t: None if t is None else t[index])
+        return PointSplit(self.points[index], pick(self.labels), pick(self.parts))
+
 
 @dataclass
 class PointCloudData:
-    """A labelled dataset: train and test splits plus label names.
+    """A labelled dataset: train, val and test splits plus label names.
 
     ``class_names`` index the class labels, ``part_names`` the part labels (either may be
-    generic names such as ``class3`` when the source does not name them).
+    generic names such as ``class3`` when the source does not name them). ``val`` is None
+    until :meth:`with_val` carves it from train.
     """
 
     train: PointSplit
@@ -84,9 +94,18 @@ class PointCloudData:
     class_names: List[str]
     part_names: List[str]
     source: str = ""
+    val: Optional[PointSplit] = None
 
     def names(self, kind: str) -> List[str]:
         return list(self.class_names if kind == "cls" else self.part_names)
+
+    def with_val(self, fraction: float, seed: int = 0) -> "PointCloudData":
+        """A copy whose ``val`` is ``fraction`` of the training clouds (stratified by class
+        label when there is one, chosen by ``seed``) and whose ``train`` is the rest; the
+        test split is left as it is. See :func:`l3d_app.data.val_split.carve_val`."""
+        tr, va = carve_val(len(self.train), fraction, seed, self.train.labels)
+        return PointCloudData(self.train.subset(tr), self.test, self.class_names, self.part_names,
+                              self.source, val=self.train.subset(va))
 
 
 def _label_names(labels: Sequence[Optional[torch.Tensor]], prefix: str,
@@ -123,7 +142,8 @@ def _as_labels(array: np.ndarray, path: Path) -> torch.Tensor:
 @DATASETS.register("course_pointcloud")
 def course_pointcloud(root: str, kind: str = "cls", class_names: Optional[List[str]] = None,
                       part_names: Optional[List[str]] = None, max_train: int = 0,
-                      max_test: int = 0, device=None) -> PointCloudData:
+                      max_test: int = 0, val_fraction: float = 0.1, val_seed: int = 0,
+                      device=None) -> PointCloudData:
     """Load the course's ``.npy`` point-cloud data from ``root`` (see module docstring).
 
     Args:
@@ -131,6 +151,8 @@ def course_pointcloud(root: str, kind: str = "cls", class_names: Optional[List[s
         kind: 'cls' (labels (N,)) or 'seg' (labels (N, P)); picks the sub-folder.
         class_names / part_names: optional names for the labels.
         max_train / max_test: keep only the first so many clouds (0 = all).
+        val_fraction / val_seed: the validation split carved from train (see
+            :meth:`PointCloudData.with_val`).
         device: ignored (datasets stay on the CPU; tasks move batches).
     """
     base = Path(str(root)).expanduser()
@@ -158,7 +180,7 @@ def course_pointcloud(root: str, kind: str = "cls", class_names: Optional[List[s
     tr, te = split["train"], split["test"]
     return PointCloudData(tr, te, _label_names([tr.labels, te.labels], "class", class_names),
                           _label_names([tr.parts, te.parts], "part", part_names),
-                          source=f"course_pointcloud:{base}")
+                          source=f"course_pointcloud:{base}").with_val(val_fraction, val_seed)
 
 
 def _read_h5(files: List[Path]):
@@ -182,9 +204,11 @@ def _read_h5(files: List[Path]):
 
 
 @DATASETS.register("modelnet40")
-def modelnet40(root: str, kind: str = "cls", device=None) -> PointCloudData:
+def modelnet40(root: str, kind: str = "cls", val_fraction: float = 0.1, val_seed: int = 0,
+               device=None) -> PointCloudData:
     """Load ModelNet40 HDF5 files ``ply_data_{train,test}*.h5`` from ``root`` (see module
-    docstring); ``kind`` and ``device`` are accepted for a uniform interface."""
+    docstring), validation carved from train (``val_fraction``, ``val_seed``); ``kind`` and
+    ``device`` are accepted for a uniform interface."""
     base = Path(str(root)).expanduser()
     if not base.is_dir():
         raise UserError(f"data.root '{base}' is not a folder")
@@ -199,4 +223,5 @@ def modelnet40(root: str, kind: str = "cls", device=None) -> PointCloudData:
     given = names_file.read_text().split() if names_file else None
     tr, te = split["train"], split["test"]
     return PointCloudData(tr, te, _label_names([tr.labels, te.labels], "class", given),
-                          _label_names([tr.parts, te.parts], "part"), source=f"modelnet40:{base}")
+                          _label_names([tr.parts, te.parts], "part"),
+                          source=f"modelnet40:{base}").with_val(val_fraction, val_seed)

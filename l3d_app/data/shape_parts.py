@@ -23,7 +23,8 @@ Global part-label space (:data:`PART_NAMES`, the same for every source class)::
 Class labels follow :data:`CLASS_NAMES` = (chair, vase, lamp). The dataset is generated
 on first use and cached as ``shape_parts_<hash>.npz`` in ``cache_dir`` (default
 ``~/.cache/l3d_app``); the hash covers every generation knob. The train/test split is
-fixed by ``seed``: object ``i`` of class ``c`` always has the same shape and samples.
+fixed by ``seed``: object ``i`` of class ``c`` always has the same shape and samples. The
+validation split is ``val_fraction`` of the training objects (per class, ``val_seed``).
 """
 
 from __future__ import annotations
@@ -293,7 +294,8 @@ def default_cache_dir() -> Path:
 @DATASETS.register("shape_parts")
 def shape_parts(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 200,
                 test_per_class: int = 50, num_points: int = 10000, seed: int = 0,
-                cache_dir: Optional[str] = None, kind: str = "cls", device=None) -> PointCloudData:
+                cache_dir: Optional[str] = None, val_fraction: float = 0.1, val_seed: int = 0,
+                kind: str = "cls", device=None) -> PointCloudData:
     """The built-in dataset (see module docstring), generated once and cached.
 
     Args:
@@ -302,6 +304,8 @@ def shape_parts(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 200
         num_points: P, surface points per object (the course uses 10,000).
         seed: generation seed (fixes shapes, samples and the split).
         cache_dir: cache folder (None: :func:`default_cache_dir`).
+        val_fraction / val_seed: the validation split carved from the training objects
+            (stratified by class; see :meth:`PointCloudData.with_val`).
         kind, device: accepted for a uniform data-source interface; both label kinds are
             always present and data stays on the CPU.
     """
@@ -336,4 +340,4 @@ def shape_parts(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 200
                                   labels=torch.from_numpy(labels[mask].astype(np.int64)),
                                   parts=torch.from_numpy(parts[mask].astype(np.int64)))
     return PointCloudData(splits["train"], splits["test"], list(CLASS_NAMES), list(PART_NAMES),
-                          source=f"shape_parts:{path}")
+                          source=f"shape_parts:{path}").with_val(val_fraction, val_seed)

@@ -36,12 +36,13 @@ import hashlib
 import json
 import math
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
 from l3d_app.data.shape_parts import GENERATORS as PART_GENERATORS
+from l3d_app.data.val_split import carve_val
 from l3d_app.errors import UserError
 from l3d_app.geometry import primitives as prim
 from l3d_app.geometry.cameras import Cameras, look_at_cameras
@@ -203,7 +204,8 @@ class SVRData:
         occ_points: (N, Q, 3) query points; occ_labels: (N, Q) bool (inside).
         depth: (N, S, H, W) camera-Z depth from :attr:`depth_cameras`, 0 on background.
         verts, faces: concatenated meshes; vert_counts, face_counts: (N,) sizes.
-        labels: (N,) class index in :attr:`class_names`; train, test: object indices.
+        labels: (N,) class index in :attr:`class_names`; train, val, test: object indices
+            (val carved from the generated training objects, see :func:`svr_shapes`).
         distance, fov: input/depth camera distance (world units) and field of view (deg).
     """
 
@@ -226,6 +228,7 @@ class SVRData:
     distance: float
     fov: float
     source: str = ""
+    val: Optional[torch.Tensor] = None
 
     @property
     def image_size(self) -> int:
@@ -309,13 +312,17 @@ def svr_shapes(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 60, 
                views_per_object: int = 2, image_size: int = 32, voxel_size: int = 32, num_points: int = 4096,
                occupancy_points: int = 4096, depth_views: int = 12, distance: float = 2.5, fov: float = 50.0,
                elevation_range: Sequence[float] = (10.0, 40.0), azimuth_range: Sequence[float] = (0.0, 360.0),
-               seed: int = 0, cache_dir: str = "outputs/.cache", device=None) -> SVRData:
+               seed: int = 0, cache_dir: str = "outputs/.cache", val_fraction: float = 0.1, val_seed: int = 0,
+               device=None) -> SVRData:
     """The built-in SVR dataset (see the module docstring), generated once and cached.
 
     Sizes: ``train_per_class`` / ``test_per_class`` objects per class per split; images and
     depth maps ``image_size`` pixels square; ``voxel_size`` cells per axis; ``num_points``
-    surface samples and ``occupancy_points`` labelled queries per object. ``device`` is
-    accepted for the uniform data-source interface; the data stays on the CPU.
+    surface samples and ``occupancy_points`` labelled queries per object. The validation
+    objects are ``val_fraction`` of the ``train_per_class`` objects of each class (chosen by
+    ``val_seed``; :func:`l3d_app.data.val_split.carve_val`); the test objects are never
+    touched. ``device`` is accepted for the uniform data-source interface; the data stays
+    on the CPU.
     """
     classes = list(classes)
     knobs = {"classes": classes, "n": int(train_per_class) + int(test_per_class),
@@ -342,12 +349,14 @@ def svr_shapes(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 60, 
             print(f"l3d_app: warning: cannot cache svr_shapes in {path.parent}: {err}")
     n = knobs["n"]
     within = torch.arange(len(fields["labels"])) % n
+    generated_train = torch.nonzero(within < int(train_per_class))[:, 0]
+    keep, held = carve_val(len(generated_train), val_fraction, val_seed, fields["labels"][generated_train])
     return SVRData(images=fields["images"].float() / 255, elevation=fields["elevation"], azimuth=fields["azimuth"],
                    points=fields["points"], voxels=fields["voxels"], occ_points=fields["occ_points"],
                    occ_labels=fields["occ_labels"], depth=fields["depth"].float(), verts=fields["verts"],
                    faces=fields["faces"], vert_counts=fields["vert_counts"], face_counts=fields["face_counts"],
                    labels=fields["labels"], class_names=tuple(CLASS_NAMES),
-                   train=torch.nonzero(within < int(train_per_class))[:, 0],
+                   train=generated_train[keep], val=generated_train[held],
                    test=torch.nonzero(within >= int(train_per_class))[:, 0],
                    distance=float(distance), fov=float(fov), source=f"svr_shapes:{path}")
 

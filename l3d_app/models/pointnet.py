@@ -28,11 +28,11 @@ class SharedMLP(nn.Module):
     the last ReLU is dropped when ``last_relu`` is False.
     """
 
-    def __init__(self, widths: Sequence[int], last_relu: bool = True):
+    def __init__(self, widths: Sequence[int], last_relu: bool = True, bn_momentum: float = 0.1):
         super().__init__()
         layers = []
         for i, (a, b) in enumerate(zip(widths[:-1], widths[1:])):
-            layers += [nn.Linear(a, b, bias=False), nn.BatchNorm1d(b)]
+            layers += [nn.Linear(a, b, bias=False), nn.BatchNorm1d(b, momentum=bn_momentum)]
             if last_relu or i < len(widths) - 2:
                 layers.append(nn.ReLU(inplace=True))
         self.layers = nn.Sequential(*layers)
@@ -42,16 +42,17 @@ class SharedMLP(nn.Module):
         return self.layers(x.reshape(-1, x.shape[-1])).view(*x.shape[:-1], self.out_dim)
 
 
-def shared_mlp(widths: Sequence[int], last_relu: bool = True) -> SharedMLP:
-    """A :class:`SharedMLP` with the given widths (input width first)."""
-    return SharedMLP([int(w) for w in widths], last_relu)
+def shared_mlp(widths: Sequence[int], last_relu: bool = True, bn_momentum: float = 0.1) -> SharedMLP:
+    """A :class:`SharedMLP` with the given widths (input width first); ``bn_momentum``: the
+    BatchNorm running-statistics momentum (PyTorch's default 0.1)."""
+    return SharedMLP([int(w) for w in widths], last_relu, float(bn_momentum))
 
 
-def mlp_head(widths: Sequence[int], dropout: float) -> nn.Sequential:
+def mlp_head(widths: Sequence[int], dropout: float, bn_momentum: float = 0.1) -> nn.Sequential:
     """Fully connected head on (B, C): Linear+BN+ReLU(+Dropout) ..., last layer plain Linear."""
     layers = []
     for a, b in zip(widths[:-2], widths[1:-1]):
-        layers += [nn.Linear(a, b, bias=False), nn.BatchNorm1d(b), nn.ReLU(inplace=True)]
+        layers += [nn.Linear(a, b, bias=False), nn.BatchNorm1d(b, momentum=float(bn_momentum)), nn.ReLU(inplace=True)]
         if dropout > 0:
             layers.append(nn.Dropout(dropout))
     layers.append(nn.Linear(widths[-2], widths[-1]))

@@ -8,16 +8,10 @@ fuse into one dense cloud of ``K * depth_size^2`` points in the object frame; de
 ``distance + depth_range * tanh(raw)`` (the object lies within the unit sphere).
 
 Training uses NO 3D supervision: each step renders the fused cloud into ``views_per_step``
-of the data's supervision cameras (random per object) with the pseudo-renderer
-(:func:`l3d_app.render.pseudo_render.pseudo_render`, upsampling ``upsample``) and compares
-with the depth and silhouette of the true mesh rendered from those cameras:
-
-* as in the paper's implementation, only points whose mask logit is > 0 (foreground) are
-  z-buffered; the rendered mask logit of a pixel is that of its nearest foreground point,
-  else of its nearest background point (so wrongly dropped points can come back), else a
-  constant -1 (no point: no gradient);
-* ``loss = w_mask * BCE(mask logits, true silhouette) + w_depth * L1(depth, true depth)``,
-  the L1 over pixels both the truth and the foreground render cover.
+of the data's supervision cameras (random per object) with the pseudo-renderer (upsampling
+``upsample``) and compares with the depth and silhouette of the true mesh rendered from
+those cameras (``loss = w_mask * BCE(mask) + w_depth * L1(depth)``; the loss and the
+rendering wiring are :func:`l3d_app.losses.svr.pseudo_loss`).
 
 At evaluation the cloud is the foreground points (mask logit > 0).
 """
@@ -34,9 +28,7 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras, look_at_cameras
 from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.rays import camera_rays
-from l3d_app.losses.occupancy import bce_with_logits
 from l3d_app.registry import MODELS
-from l3d_app.render.pseudo_render import pseudo_render
 
 CUBE_ELEVATION = math.degrees(math.atan(1 / math.sqrt(2)))  # 35.26: a cube corner's elevation
 
@@ -55,6 +47,8 @@ def _up(cin: int, cout: int) -> nn.Sequential:
 class PseudoRenderDecoder(nn.Module):
     """Feature -> K depth maps + mask logits -> fused cloud; trained through pseudo-rendering.
 
+    ``kind`` "pseudo": its loss is :func:`l3d_app.losses.svr.pseudo_loss`.
+
     Args:
         latent_dim: feature size.
         distance, fov: fixed-camera distance (world units) and field of view (degrees).
@@ -65,6 +59,8 @@ class PseudoRenderDecoder(nn.Module):
         views_per_step: supervision views rendered per object per step.
         w_mask, w_depth: loss weights.
     """
+
+    kind = "pseudo"
 
     def __init__(self, latent_dim: int, distance: float, fov: float, depth_size: int = 32, width: int = 64,
                  depth_range: float = 1.0, upsample: int = 4, views_per_step: int = 4,
@@ -101,35 +97,6 @@ class PseudoRenderDecoder(nn.Module):
         logits = raw[:, self.K:]
         points = self.origins + depth[..., None] * self.dirs             # (B, K, h, w, 3)
         return {"depth": depth, "mask_logits": logits, "points": points.reshape(feature.shape[0], -1, 3)}
-
-    def render(self, points: torch.Tensor, logits: torch.Tensor, cams: Cameras) -> Dict[str, torch.Tensor]:
-        """Pseudo-render clouds (B, N, 3) with mask logits (B, N) into B cameras: depth,
-        covered (foreground z-buffer) and mask_logits (B, H, W) (see the module docstring)."""
-        fg = logits.detach() > 0
-        lg = logits[..., None]
-        front = pseudo_render(points, cams, self.upsample, values=lg, active=fg)
-        back = pseudo_render(points, cams, self.upsample, values=lg, active=~fg)
-        mask = torch.where(front["covered"], front["values"][..., 0],
-                           torch.where(back["covered"], back["values"][..., 0], torch.full_like(front["depth"], -1.0)))
-        return {"depth": front["depth"], "covered": front["covered"], "mask_logits": mask}
-
-    def loss(self, feature, batch, generator=None) -> Dict[str, torch.Tensor]:
-        out = self(feature)
-        B, S = batch["depth"].shape[:2]
-        s = min(self.views_per_step, S)
-        views = torch.rand(B, S, generator=generator, device=feature.device).argsort(dim=1)[:, :s]  # (B, s)
-        cams: Cameras = batch["depth_cameras"][views.reshape(-1)]
-        gt = torch.gather(batch["depth"], 1, views[..., None, None].expand(-1, -1, *batch["depth"].shape[2:]))
-        gt = gt.reshape(B * s, *gt.shape[2:])
-        gt_mask = gt > 0
-        pts = out["points"].repeat_interleave(s, dim=0)
-        lg = out["mask_logits"].reshape(B, -1).repeat_interleave(s, dim=0)
-        r = self.render(pts, lg, cams)
-        mask_loss = bce_with_logits(r["mask_logits"], gt_mask.float())
-        both = gt_mask & r["covered"]
-        depth_loss = ((r["depth"] - gt).abs() * both).sum() / both.sum().clamp_min(1)
-        return {"loss": self.w_mask * mask_loss + self.w_depth * depth_loss, "mask_bce": mask_loss,
-                "depth_l1": depth_loss, "foreground": (lg > 0).float().mean()}
 
     def clouds(self, feature) -> List[torch.Tensor]:
         """The foreground points of each object, (P_i, 3)."""

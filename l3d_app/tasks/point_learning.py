@@ -8,17 +8,19 @@ logits (B, N, K)). Training runs through the shared loop
   training clouds in a permutation fixed by (seed, epoch), and each visit uses a random
   ``train_points`` subset of the cloud's points (seeded by (seed, step, rank)), so a
   resumed run draws exactly the batches an uninterrupted one would;
-* best-checkpoint keeping: at every evaluation (every ``eval_every_epochs`` epochs) the
-  test accuracy on a fixed ``eval_points`` subset of every test cloud is logged against
-  the epoch (``test/accuracy``) and, when it is the best so far, the model is written to
-  ``best.pt`` (self-contained: model config, label names, weights). Like the course,
-  model selection uses the test split (there is no validation split in its data);
+* best-checkpoint keeping on VALIDATION: every ``eval_every_epochs`` epochs the accuracy on
+  a fixed ``eval_points`` subset of every validation cloud (``data.val_fraction`` of the
+  training clouds, carved by the dataset) is logged as ``val/accuracy`` and, when it is the
+  best so far, the model is written to ``best.pt`` (self-contained: model config, label
+  names, weights);
 * data parallelism: under ``torchrun`` each rank takes its share of every global batch
   and the model is wrapped in DistributedDataParallel; rank 0 evaluates and writes the
   artefacts, other ranks write only into ``rank<r>/`` (their checkpoints, for resume).
 
-The final figures come from ``best.pt`` evaluated on ``test_points`` points of every
-test cloud (0 = all points).
+The test split is read ONCE, after training: the selected model (``best.pt`` with
+``use_best``, else the last weights) on ``test_points`` points of every test cloud
+(0 = all points), logged as ``test/...``; metrics.json carries ``accuracy`` (test),
+``val_accuracy`` (the selected model's) and ``"selected_on": "val"``.
 """
 
 from __future__ import annotations
@@ -40,10 +42,12 @@ from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.transforms import axis_rotation
 from l3d_app.metrics.accuracy import accuracy, confusion_matrix
 from l3d_app.registry import DATASETS, MODELS, RENDERERS
+from l3d_app.render.charts import confusion_image
+from l3d_app.render.palette import palette
 from l3d_app.runtime import distributed
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.media import save_gif, save_png
-from l3d_app.runtime.training import Trainable, train
+from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import require_positive
 
 BEST = "best.pt"
@@ -54,10 +58,14 @@ BEST = "best.pt"
 def load_data(cfg, kind: str) -> PointCloudData:
     """The configured data source, checked to carry the labels ``kind`` needs."""
     data = DATASETS.build(cfg.data, kind=kind)
-    for split in (data.train, data.test):
+    if data.val is None:
+        raise UserError(f"the {data.source} dataset has no validation split")
+    for split in (data.train, data.val, data.test):
         split.targets(kind)
         if len(split) == 0:
-            raise UserError(f"the {data.source} dataset has an empty split")
+            raise UserError(f"the {data.source} dataset has an empty split "
+                            f"(train {len(data.train)}, val {len(data.val)}, test {len(data.test)}); "
+                            f"raise data.val_fraction or the number of clouds")
     return data
 
 
@@ -174,8 +182,9 @@ def check_train_knobs(cfg) -> None:
 def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Dist] = None):
     """Train the configured model for ``kind`` on ``data`` (see module docstring).
 
-    Returns (model with the best weights loaded, info dict: n_params, iters, epochs,
-    best_epoch, best_eval_accuracy, last_eval_accuracy, train_seconds).
+    Returns (model with the selected weights loaded, info dict: n_params, iters, epochs,
+    best_epoch, val_accuracy (of the selected model), last_val_accuracy, selected_on,
+    history (val figures per evaluation), train_seconds, interrupted).
     """
     check_train_knobs(cfg)
     dist = dist or distributed.Dist()
@@ -228,12 +237,12 @@ def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Di
     eval_points = int(cfg.eval_points)
 
     def eval_fn(step: int) -> Dict[str, float]:
+        """Validation only (the test split is read once, by the caller, after training)."""
         if not dist.is_main:
             return {}
         epoch = step / steps_per_epoch
-        acc = evaluate(model, data.test, kind, device, eval_points, seed,
+        acc = evaluate(model, data.val, kind, device, eval_points, seed,
                        batch_points=int(cfg.eval_batch_points)).accuracy
-        ctx.logger.scalar("test/accuracy", acc, round(epoch))
         if acc > float(best[0]):
             best[0], best[1] = acc, epoch
             save_best(ctx.path(BEST), model, {**meta, "epoch": epoch, "accuracy": acc})
@@ -244,55 +253,22 @@ def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Di
         result = train(ctx, trainable, step_fn, iters, eval_fn=eval_fn, eval_every=spe_eval,
                        checkpoint_every=steps_per_epoch * int(cfg.checkpoint_every_epochs or 0),
                        resume=bool(cfg.resume), desc=f"pointnet_{kind}")
-    if dist.is_main and ctx.path(BEST).exists() and cfg.use_best:
+    use_best = bool(cfg.use_best) and dist.is_main and ctx.path(BEST).exists()
+    if use_best:
         model.load_state_dict(torch.load(ctx.path(BEST), map_location="cpu", weights_only=False)["state"])
     model.eval()
+    last = float(result.metrics.get("accuracy", float("nan")))
     info = {"n_params": n_params(model), "iters": result.step, "epochs": result.step / steps_per_epoch,
-            "best_epoch": float(best[1]), "best_eval_accuracy": float(best[0]),
-            "last_eval_accuracy": float(result.metrics.get("accuracy", float("nan"))),
+            "best_epoch": float(best[1]) if use_best else result.step / steps_per_epoch,
+            "val_accuracy": round(float(best[0]) if use_best else last, 5),
+            "last_val_accuracy": round(last, 5),
+            "selected_on": "val" if use_best else "last",
+            "n_val": len(data.val), "history": result.history_rows(),
             "train_seconds": ctx.stopwatch.stages["train"], "interrupted": result.interrupted}
     return model, info
 
 
 # ----------------------------------------------------------------------------- pictures
-
-def palette(n: int) -> torch.Tensor:
-    """(n, 3) distinct RGB colours in [0, 1] (matplotlib tab10 / tab20 / hsv)."""
-    import matplotlib
-
-    name = "tab10" if n <= 10 else "tab20" if n <= 20 else "hsv"
-    cmap = matplotlib.colormaps[name]
-    x = np.arange(n) if name != "hsv" else np.linspace(0, 1, n, endpoint=False)
-    return torch.tensor(np.asarray(cmap(x))[:, :3], dtype=torch.float32)
-
-
-def confusion_image(cm: torch.Tensor, names: Sequence[str], title: str) -> np.ndarray:
-    """(H, W, 3) float image of a row-normalised confusion matrix with counts."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    k = cm.shape[0]
-    rows = cm.double() / cm.sum(1, keepdim=True).clamp_min(1)
-    fig, ax = plt.subplots(figsize=(2 + 0.6 * k, 1.6 + 0.6 * k), dpi=100)
-    ax.imshow(rows.numpy(), cmap="Blues", vmin=0, vmax=1)
-    if k <= 20:
-        for i in range(k):
-            for j in range(k):
-                ax.text(j, i, str(int(cm[i, j])), ha="center", va="center", fontsize=7,
-                        color="white" if rows[i, j] > 0.5 else "black")
-    ax.set_xticks(range(k), labels=list(names), rotation=60, ha="right", fontsize=7)
-    ax.set_yticks(range(k), labels=list(names), fontsize=7)
-    ax.set_xlabel("predicted")
-    ax.set_ylabel("true")
-    ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    fig.canvas.draw()
-    image = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(np.float32) / 255.0
-    plt.close(fig)
-    return image
-
 
 def _safe(name: str) -> str:
     """A label usable in a file name ('chair/seat' -> 'chair-seat')."""
@@ -405,8 +381,10 @@ def run_point_task(cfg, ctx, kind: str) -> Dict[str, Any]:
         with ctx.stopwatch.stage("test"):
             ev = evaluate(model, data.test, kind, ctx.device, int(cfg.test_points), int(cfg.seed),
                           batch_points=int(cfg.eval_batch_points))
-        metrics.update(accuracy=ev.accuracy, test_points=int(ev.points.shape[1]),
-                       test_seconds=ctx.stopwatch.stages["test"], **per_label_accuracy(ev, names, kind))
+        test_figures = {"accuracy": ev.accuracy, **per_label_accuracy(ev, names, kind)}
+        metrics.update(test_figures, test_points=int(ev.points.shape[1]),
+                       test_seconds=ctx.stopwatch.stages["test"])
+        log_test(ctx, test_figures, info["iters"])
         ctx.logger.text("test/summary", f"test accuracy {ev.accuracy:.4f} on {len(data.test)} clouds "
                                         f"x {ev.points.shape[1]} points")
         with ctx.stopwatch.stage("visuals"):

@@ -4,7 +4,7 @@
     python main.py task=pointnet_cls data=course_pointcloud data.root=DIR
     torchrun --nproc_per_node=2 main.py task=pointnet_cls  # data-parallel
 
-Writes best.pt (best test accuracy so far), checkpoint.pt (resume), confusion_matrix.png,
+Writes best.pt (best VALIDATION accuracy so far; test read once at the end), checkpoint.pt (resume), confusion_matrix.png,
 vis/*.gif (random test clouds coloured by predicted class, one failure per class) and
 metrics.json (accuracy, per-class accuracy, seconds, n_params, ...). See
 :mod:`l3d_app.tasks.point_learning`.

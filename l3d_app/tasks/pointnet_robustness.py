@@ -5,8 +5,9 @@
     python main.py task=pointnet_robustness augment_rotation=true  # train with rotations
 
 For each kind (cls, seg) the model is read from its ``best.pt`` or, when none is given,
-trained first with the shared pointnet knobs (into ``cls/`` and ``seg/`` sub-folders).
-Then two tables on the test split:
+trained first with the shared pointnet knobs (into ``cls/`` and ``seg/`` sub-folders; the
+checkpoint is chosen on the validation split, never on test). Then two tables on the test
+split:
 
 * rotation: accuracy with every test cloud rotated by each of ``rotation_degrees``
   about ``rotation_axis``, evaluated on ``rotation_points`` points per cloud (0 = all);
@@ -14,13 +15,17 @@ Then two tables on the test split:
   points per cloud (sizes above the clouds' size are reported as NaN).
 
 Figures go to metrics.json (``cls_rot<deg>``, ``cls_pts<n>``, ``seg_rot<deg>``,
-``seg_pts<n>``, plus ``tables``), TensorBoard (``robustness/*`` against the degrees or
+``seg_pts<n>``, plus ``tables``; ``<kind>_ms_per_cloud``: wall milliseconds per test cloud of
+one evaluation pass on all its points, ``<kind>_n_params``), TensorBoard (``robustness/*`` against the degrees or
 point count, and the markdown tables as text) and ``robustness.md``.
 """
 
 from __future__ import annotations
 
+import time
 from typing import Any, Dict, List
+
+import torch
 
 from l3d_app.errors import UserError
 from l3d_app.registry import TASKS
@@ -53,7 +58,8 @@ def _model_for(cfg, ctx, kind: str):
         model, info = fit(cfg, sub_ctx, data, kind)
     finally:
         sub_ctx.logger.close()
-    return model, data, {"source": str(sub / "best.pt"), "train_seconds": info["train_seconds"]}
+    return model, data, {"source": str(sub / "best.pt"), "train_seconds": info["train_seconds"],
+                         "val_accuracy": info["val_accuracy"], "selected_on": info["selected_on"]}
 
 
 @TASKS.register("pointnet_robustness")
@@ -72,7 +78,15 @@ def pointnet_robustness(cfg, ctx) -> dict:
     for kind in kinds:
         model, data, info = _model_for(cfg, ctx, kind)
         metrics[f"{kind}_model"] = info["source"]
+        if "val_accuracy" in info:
+            metrics[f"{kind}_val_accuracy"] = info["val_accuracy"]
+            metrics["selected_on"] = info["selected_on"]
         rot_rows, pts_rows = {}, {}
+        metrics[f"{kind}_n_params"] = sum(p.numel() for p in model.parameters())
+        with torch.no_grad():  # cost per cloud: one pass over every test cloud, all its points
+            t0 = time.perf_counter()
+            evaluate(model, data.test, kind, ctx.device, 0, seed, batch_points=batch)
+            metrics[f"{kind}_ms_per_cloud"] = round(1000 * (time.perf_counter() - t0) / len(data.test), 3)
         with ctx.stopwatch.stage(f"{kind}_tables"):
             mats = rotations(str(cfg.rotation_axis), degrees)
             for d, mat in zip(degrees, mats):
@@ -91,7 +105,8 @@ def pointnet_robustness(cfg, ctx) -> dict:
         metrics["tables"][kind] = {"rotation": rot_rows, "num_points": pts_rows}
         metrics[f"{kind}_seconds"] = ctx.stopwatch.stages[f"{kind}_tables"] + info.get("train_seconds", 0.0)
         name = "classification" if kind == "cls" else "segmentation (point)"
-        report += [f"\n## {name}\n", _table(name, "degrees", rot_rows), "",
+        report += [f"\n## {name} ({metrics[f'{kind}_n_params']} parameters, "
+                   f"{metrics[f'{kind}_ms_per_cloud']} ms per test cloud)\n", _table(name, "degrees", rot_rows), "",
                    _table(name, "points", pts_rows)]
     text = "\n".join(report) + "\n"
     ctx.path("robustness.md").write_text(text)
