@@ -4,7 +4,7 @@ DGCNN, single-view decoders."""
 from l3d_app.exports import lazy_exports
 
 # Registering modules: importing the package completes its registries.
-from l3d_app.models import nerf, pointnet, dgcnn, sdf_net, sdf_grid, svr_decoders, svr_pseudo  # noqa: F401,E402
+from l3d_app.models import nerf, pointnet, dgcnn, sdf_net, sdf_grid, svr_decoders, svr_pseudo, pointnet2  # noqa: F401,E402
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "HarmonicEncoding": "encodings",
