@@ -2,7 +2,7 @@
 
 - layers: tasks -> (render, models, losses, metrics, data, diffusion) -> geometry -> runtime;
   within the middle layer only the edges in ``ALLOWED`` (data and models may render, losses
-  may use metrics and the diffusion interface); nothing but ``app`` imports ``app``;
+  may render and use metrics and the diffusion interface); nothing but ``app`` imports ``app``;
 - no task imports another task (shared wiring goes to ``tasks/common.py`` or a
   ``tasks/*_common.py`` helper);
 - omegaconf / hydra only in ``app.py``, ``main.py`` and ``tasks/``;
@@ -41,7 +41,7 @@ ALLOWED = {  # layer -> layers its modules may import (besides their own layer)
     "diffusion": {"geometry", "runtime", "base"},
     "models": {"render", "geometry", "runtime", "base"},
     "data": {"render", "geometry", "runtime", "base"},
-    "losses": {"metrics", "diffusion", "geometry", "runtime", "base"},
+    "losses": {"render", "metrics", "diffusion", "geometry", "runtime", "base"},  # rendering losses render
     "tasks": MIDDLE | {"geometry", "runtime", "base"},
     "report": {"runtime", "base"},
     "app": MIDDLE | {"tasks", "geometry", "runtime", "base"},
@@ -53,8 +53,6 @@ KNOWN: Dict[tuple, str] = {
     ("layers", "l3d_app.geometry.gaussian_ply"): "gauss (geometry -> models.gaussians)",
     ("layers", "l3d_app.render.gaussians"): "gauss (render -> models.sh)",
     ("layers", "l3d_app.diffusion.sampling"): "course (diffusion.sampling <-> losses.sds)",
-    ("layers", "l3d_app.models.svr_decoders"): "points (models -> data, losses, metrics)",
-    ("layers", "l3d_app.models.svr_pseudo"): "points (models -> losses.occupancy)",
     ("layers", "l3d_app.metrics.surface_scores"): "rays: tasks/volsdf.py must pass depth_maps="
                                                   "render.rgbd.true_depth_maps(truth, cams, scale=4); "
                                                   "then house's temporary render fallback goes",
@@ -63,7 +61,6 @@ KNOWN: Dict[tuple, str] = {
     ("no_task_imports_task", "l3d_app.tasks.pointnet_cls"): "points (-> point_learning)",
     ("no_task_imports_task", "l3d_app.tasks.pointnet_seg"): "points (-> point_learning)",
     ("no_task_imports_task", "l3d_app.tasks.pointnet_robustness"): "points (-> point_learning)",
-    ("no_task_imports_task", "l3d_app.tasks.svr_common"): "points (-> point_learning)",
 }
 
 
