@@ -35,9 +35,9 @@ def _central_fd(fn, x: torch.Tensor, h: float) -> torch.Tensor:
     for i in range(flat.numel()):
         old = float(flat[i])
         flat[i] = old + h
-        fp = float(fn(x))
+        fp = float(fn(x).detach())
         flat[i] = old - h
-        fm = float(fn(x))
+        fm = float(fn(x).detach())
         flat[i] = old
         gflat[i] = (fp - fm) / (2 * h)
     return g
@@ -212,7 +212,7 @@ def test_eikonal_through_a_kinked_sdf_matches_finite_differences_in_its_paramete
     assert float(val.detach()) == pytest.approx(((N - k) * (s - 1) ** 2 + k) / N, rel=1e-13)
     assert float(gs) == pytest.approx(2 * (N - k) * (s - 1) / N, rel=1e-12, abs=1e-14)
     h = 1e-6
-    fd = (float(loss(torch.tensor(s + h, dtype=D))) - float(loss(torch.tensor(s - h, dtype=D)))) / (2 * h)
+    fd = (float(loss(torch.tensor(s + h, dtype=D)).detach()) - float(loss(torch.tensor(s - h, dtype=D)).detach())) / (2 * h)
     assert float(gs) == pytest.approx(fd, rel=1e-7, abs=1e-9)
 
 
