@@ -22,10 +22,13 @@ def main(words: list[str]) -> int:
     failed = []
     for path in files:
         start = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(path)],
+        proc = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", str(path)],
                               cwd=TESTS.parent, capture_output=True, text=True)
         took = time.perf_counter() - start
-        last = (proc.stdout.strip().splitlines() or ["(no output)"])[-1]
+        lines = proc.stdout.strip().splitlines()
+        last = next((ln for ln in reversed(lines) if " in " in ln and ("passed" in ln or "failed" in ln
+                                                                    or "error" in ln or "skipped" in ln)),
+                    lines[-1] if lines else "(no output)")
         print(f"{'ok  ' if proc.returncode in (0, 5) else 'FAIL'} {path.name:40s} {took:7.1f}s  {last}", flush=True)
         if proc.returncode not in (0, 5):                  # 5: nothing collected
             failed.append(path.name)
