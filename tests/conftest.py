@@ -4,10 +4,11 @@ random-order setup.
 Random order: pytest-randomly (the test extra; ``addopts = -p randomly``) shuffles the tests
 on every run and reseeds ``random`` and numpy before each test; the seed is printed at the
 end of the run (repeat an order with ``--randomly-seed=N``, or ``-p no:randomly`` for file
-order). It does not touch torch, so :func:`_torch_seed_per_test` seeds torch's global
-generator before each test from the test's id alone: a test's torch draws are the same in
-any order and under any --randomly-seed, and the shuffle can only expose real leaks between
-tests (registries, global flags, working directory, environment).
+order). It does not touch torch, so this conftest seeds torch's global generator before
+each test (``pytest_runtest_setup``, ahead of its fixtures) from the test's id alone: a
+test's torch draws are the same in any order and under any --randomly-seed, and the shuffle
+can only expose real leaks between tests (registries, global flags, working directory,
+environment).
 """
 
 from __future__ import annotations
@@ -45,11 +46,11 @@ def compose():
     return _compose
 
 
-@pytest.fixture(autouse=True)
-def _torch_seed_per_test(request):
-    """Seed torch's global generator from the test's node id (order-independent)."""
-    torch.manual_seed(zlib.crc32(request.node.nodeid.encode()))
-    yield
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item):
+    """Seed torch's global generator from the test's node id (order-independent), before any
+    fixture of the test is set up (module-scoped ones included)."""
+    torch.manual_seed(zlib.crc32(item.nodeid.encode()))
 
 
 def pytest_terminal_summary(terminalreporter, config):
