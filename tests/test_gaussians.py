@@ -1,4 +1,8 @@
-"""Gaussian rasteriser against a naive float64 reference (every splat at every pixel)."""
+"""Gaussian rasteriser against a naive float64 reference (every splat at every pixel).
+
+The reference shares nothing with the code under test: its SH colour comes from
+tests/sh_reference.py (a recurrence, checked against scipy in test_sh_reference.py),
+its rotation from the quaternion formula below, its compositing from a per-splat loop."""
 
 from __future__ import annotations
 
@@ -8,8 +12,9 @@ import pytest
 import torch
 
 from l3d_app.geometry.cameras import Cameras, look_at
-from l3d_app.models.sh import SH_C0, eval_sh, rgb_to_sh, sh_to_rgb
+from l3d_app.models.sh import eval_sh, rgb_to_sh, sh_to_rgb
 from l3d_app.render.gaussians import rasterize_gaussians
+from sh_reference import sh_colour
 
 torch.set_num_threads(1)
 DT = torch.float64
@@ -70,7 +75,7 @@ def reference(means, log_scales, quats, logits, sh, deg, cams, bg, near=0.01):
         mu = torch.stack([fx * x / z + cx, fy * y / z + cy], -1)
         dirs = means - (-R.T @ t)
         dirs = dirs / dirs.norm(dim=-1, keepdim=True)
-        rgb = (eval_sh(deg, sh, dirs) + 0.5).clamp_min(0)
+        rgb = sh_colour(deg, sh, dirs)
         T = torch.ones(H, W, dtype=DT)
         alive = torch.ones(H, W, dtype=torch.bool)
         C = torch.zeros(H, W, 3, dtype=DT)
@@ -252,9 +257,9 @@ def test_sh_finite_at_the_poles_and_dc_round_trip():
         assert torch.isfinite(v).all()
         gr = torch.autograd.grad(v.sum(), [coeffs, d], allow_unused=True)
         assert all(x is None or torch.isfinite(x).all() for x in gr)
-    # degree 1 at +z is C0 c0 + C1 c2
+    # degree 1 at +z is Y00 c0 + Y10 c2 with Y00 = 1 / sqrt(4 pi), Y10(+z) = sqrt(3 / 4 pi)
     v1 = eval_sh(1, coeffs, dirs)
-    torch.testing.assert_close(v1[0], SH_C0 * coeffs[0, 0] + 0.4886025119029199 * coeffs[0, 2])
+    torch.testing.assert_close(v1[0], coeffs[0, 0] / math.sqrt(4 * math.pi) + math.sqrt(3 / (4 * math.pi)) * coeffs[0, 2])
     rgb = torch.rand(4, 3, dtype=DT)
     torch.testing.assert_close(sh_to_rgb(rgb_to_sh(rgb)), rgb)
     # bands of degree >= 1 integrate to zero over the sphere (orthogonality to Y_00)
@@ -266,11 +271,19 @@ def test_sh_finite_at_the_poles_and_dc_round_trip():
 
 
 def test_sh_basis_is_orthonormal_on_the_sphere():
-    """The degree-3 basis constants: E[Y_i Y_j] over uniform directions = delta_ij / (4 pi)."""
+    """The degree-3 basis is orthonormal: int Y_i Y_j dOmega = delta_ij, by a product quadrature
+    (Gauss-Legendre in z, trapezoid in azimuth) that is exact for these degree-6 products."""
+    import numpy as np
+
     from l3d_app.models.sh import sh_basis
 
-    g = torch.Generator().manual_seed(1)
-    u = torch.nn.functional.normalize(torch.randn(400000, 3, generator=g, dtype=DT), dim=-1)
+    zq, wq = np.polynomial.legendre.leggauss(8)
+    phi = np.arange(16) * (2 * math.pi / 16)
+    z = torch.from_numpy(zq)[:, None].expand(8, 16)
+    p = torch.from_numpy(phi)[None, :].expand(8, 16)
+    r = torch.sqrt(1 - z * z)
+    u = torch.stack([r * torch.cos(p), r * torch.sin(p), z], -1).reshape(-1, 3)
+    w = (torch.from_numpy(wq)[:, None] * (2 * math.pi / 16)).expand(8, 16).reshape(-1)
     Y = sh_basis(3, u)
-    gram = Y.T @ Y / u.shape[0] * (4 * math.pi)
-    torch.testing.assert_close(gram, torch.eye(16, dtype=DT), atol=0.02, rtol=0)
+    gram = Y.T @ (w[:, None] * Y)
+    torch.testing.assert_close(gram, torch.eye(16, dtype=DT), atol=1e-12, rtol=0)

@@ -37,3 +37,19 @@ def test_ssim_matches_naive_float64_window_loop():
             cxy = (k * px * py).sum() - mx * my
             vals.append((2 * mx * my + 1e-4) * (2 * cxy + 9e-4) / ((mx ** 2 + my ** 2 + 1e-4) * (vx + vy + 9e-4)))
     assert float(ssim(x, y)) == pytest.approx(float(torch.stack(vals).mean()), rel=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(40, 37, 3), (2, 24, 30, 3), (11, 11, 1)])
+def test_ssim_and_psnr_match_scikit_image(shape):
+    """Against scikit-image (independent code): Gaussian window sigma 1.5 (11 px), population
+    covariances, data range 1 (Wang et al. 2004), mean over channels and images; PSNR too."""
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    gen = torch.Generator().manual_seed(2)
+    x = torch.rand(*shape, generator=gen, dtype=torch.float64)
+    y = (x + 0.2 * torch.randn(*shape, generator=gen, dtype=torch.float64)).clamp(0, 1)
+    xs, ys = x.reshape(-1, *shape[-3:]).numpy(), y.reshape(-1, *shape[-3:]).numpy()
+    ref = sum(structural_similarity(a, b, channel_axis=-1, gaussian_weights=True, sigma=1.5,
+                                    use_sample_covariance=False, data_range=1.0) for a, b in zip(xs, ys)) / len(xs)
+    assert float(ssim(x, y)) == pytest.approx(ref, rel=1e-10)
+    assert float(psnr(x, y)) == pytest.approx(peak_signal_noise_ratio(ys, xs, data_range=1.0), rel=1e-10)

@@ -93,11 +93,16 @@ def test_guidance_scale_zero_is_unconditional_and_one_is_conditional(setup):
         torch.testing.assert_close(eps, direct)
 
 
-def test_huge_guidance_scale_stays_finite(setup):
+def test_huge_guidance_scale_stays_finite_and_exact(setup):
     prior, x, emb, g = setup
-    out = sds_loss(prior, x, emb, guidance_scale=1e6, generator=g)
+    t = torch.tensor([1, 20, 60, 99])
+    noise = torch.randn(x.shape, generator=g)
+    out = sds_loss(prior, x, emb, guidance_scale=1e6, t=t, noise=noise)
     out.loss.backward()
     assert out.finite and torch.isfinite(out.loss) and torch.isfinite(x.grad).all()
+    ref = reference_grad(prior, x, emb, 1e6, t, noise)             # ~1e6 (cond - uncond) w(t)
+    assert float(ref.abs().max()) > 1e5
+    torch.testing.assert_close(x.grad.double(), ref, rtol=1e-5, atol=1e-6 * float(ref.abs().max()))
     assert out.grad_norm > 1e5
 
 

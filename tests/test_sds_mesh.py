@@ -80,6 +80,15 @@ def test_sds_mesh_tiny_run_writes_outputs_with_finite_metrics(compose, tmp_path)
     assert m["match_rate_before"] == 0.0        # the grey start is no red square
 
 
+def test_sds_mesh_raises_the_prompt_match_from_its_grey_start(compose, tmp_path):
+    """The shipped built-in prior paints the cube in 30 steps (seed 0, chosen for this test):
+    the checker's match over the turntable rises from the grey start's 0 to most frames, and
+    the colour is the prompt's on every frame. A broken texture gradient stays grey."""
+    m = _run(compose, tmp_path, "iters=30", "eval_every=30", "num_frames=4", "batch_frames=4", "seed=0")
+    assert m["match_rate_before"] == 0.0
+    assert m["match_rate"] >= 0.75 and m["colour_match_rate"] == 1.0, m
+
+
 def test_sds_mesh_on_the_course_cow(compose, tmp_path):
     cow = course_data("cow", "cow.obj")
     m = _run(compose, tmp_path, "data=mesh", f"data.path={cow}", "iters=2", "prompt=a blue square on white")

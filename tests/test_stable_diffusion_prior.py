@@ -10,11 +10,13 @@ import torch
 
 from l3d_app.errors import UserError
 
-diffusers = pytest.importorskip("diffusers")
-transformers = pytest.importorskip("transformers")
+# diffusers / transformers are in the test extra: a broken install fails here, it does not skip
+import diffusers
+import transformers
 
-from l3d_app.diffusion.stable_diffusion import (StableDiffusionPrior, check_pipeline_folder,  # noqa: E402
+from l3d_app.diffusion.stable_diffusion import (StableDiffusionPrior, check_pipeline_folder,
                                                 stable_diffusion_prior)
+from l3d_app.losses import sds
 
 MAX_LEN, HIDDEN, LATENT_SIDE, VAE_LEVELS = 16, 16, 8, 2   # image side = 8 * 2 ** (2 - 1) = 16
 
@@ -126,7 +128,6 @@ def test_noise_prediction_shape(prior):
 
 
 def test_one_sds_step_gives_finite_latent_and_image_gradients(prior):
-    sds = pytest.importorskip("l3d_app.losses.sds")
     emb = prior.embed_prompt("a red cow")
     g = torch.Generator().manual_seed(2)
     latent = torch.randn(2, *prior.latent_shape, generator=g).requires_grad_(True)
