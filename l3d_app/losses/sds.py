@@ -27,6 +27,7 @@ from typing import Optional, Tuple
 import torch
 import torch.nn.functional as F
 
+from l3d_app.diffusion.guidance import guided_noise  # noqa: F401  (re-exported: older imports)
 from l3d_app.diffusion.prior import DiffusionPrior, PromptEmbedding
 from l3d_app.errors import UserError
 
@@ -72,23 +73,6 @@ def sds_weight(alphas_cumprod: torch.Tensor, t: torch.Tensor, weighting: str = "
     if weighting == "uniform":
         return torch.ones(t.shape, device=t.device)
     raise UserError(f"unknown SDS weighting '{weighting}' (known: {', '.join(WEIGHTINGS)})")
-
-
-def guided_noise(prior: DiffusionPrior, x_t: torch.Tensor, t: torch.Tensor,
-                 embedding: PromptEmbedding, guidance_scale: float) -> torch.Tensor:
-    """Classifier-free-guided noise ``eps_u + s (eps_c - eps_u)`` from ONE batched call.
-
-    x_t: (B, *latent_shape); t: (B,) long; the embedding's leading dimension is 1 (one
-    prompt for the batch) or B (one prompt per sample). Returns float32 (B, *latent_shape).
-    """
-    B = x_t.shape[0]
-    cond = embedding.cond.to(x_t.device)
-    uncond = embedding.uncond.to(x_t.device)
-    cond = cond.expand(B, *cond.shape[1:])
-    uncond = uncond.expand(B, *uncond.shape[1:])
-    eps = prior.predict_noise(torch.cat([x_t, x_t]), torch.cat([t, t]), torch.cat([cond, uncond]))
-    eps_c, eps_u = eps.float().chunk(2)
-    return eps_u + float(guidance_scale) * (eps_c - eps_u)
 
 
 def sds_loss(prior: DiffusionPrior, x: torch.Tensor, embedding: PromptEmbedding,
