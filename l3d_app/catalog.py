@@ -57,6 +57,8 @@ MODULES = (
     "l3d_app.diffusion.stable_diffusion",
     "l3d_app.tasks.sds_mesh",
     "l3d_app.tasks.sds_nerf",
+    "l3d_app.tasks.ray_diagnostics",
+    "l3d_app.tasks.sphere_trace",
 )
 
 
