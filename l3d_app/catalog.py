@@ -59,6 +59,7 @@ MODULES = (
     "l3d_app.tasks.sds_nerf",
     "l3d_app.tasks.ray_diagnostics",
     "l3d_app.tasks.sphere_trace",
+    "l3d_app.tasks.stereo_depth",
 )
 
 
