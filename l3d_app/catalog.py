@@ -60,6 +60,8 @@ MODULES = (
     "l3d_app.tasks.ray_diagnostics",
     "l3d_app.tasks.sphere_trace",
     "l3d_app.tasks.stereo_depth",
+    "l3d_app.tasks.pca_normals",
+    "l3d_app.data.room_scene",
 )
 
 
