@@ -61,6 +61,7 @@ MODULES = (
     "l3d_app.tasks.sphere_trace",
     "l3d_app.tasks.stereo_depth",
     "l3d_app.tasks.pca_normals",
+    "l3d_app.tasks.sampling_variance",
     "l3d_app.data.room_scene",
 )
 
