@@ -21,6 +21,7 @@ from l3d_app.data.backdrops import pillar_backdrop
 from l3d_app.errors import UserError
 from l3d_app.geometry.camera_paths import dolly_distance
 from l3d_app.geometry.dolly_framing import dolly_cameras, extent_distances
+from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.mesh_parts import largest_part_mask, submesh
 from l3d_app.registry import DATASETS, RENDERERS, TASKS
 from l3d_app.runtime.annotate import label_frames
@@ -48,7 +49,7 @@ def composite_by_depth(a: dict, b: dict, background: torch.Tensor) -> torch.Tens
 def subject_width(alpha: torch.Tensor) -> torch.Tensor:
     """(N,) on-screen width in pixels: the horizontal extent of the (N, H, W) coverage map, the sum
     over columns of each column's largest coverage (anti-aliased edges count fractionally, so the
-    width is sub-pixel; for a convex silhouette this is its widest row)."""
+    width is sub-pixel; for a disc it equals the widest row)."""
     return alpha.amax(dim=-2).sum(dim=-1)
 
 
@@ -69,6 +70,8 @@ def dolly(cfg, ctx) -> dict:
     if not 0 < float(cfg.subject_fraction) < 1:
         raise UserError(f"subject_fraction must be in (0, 1), got {cfg.subject_fraction}")
     scene = DATASETS.build(cfg.data, device=ctx.device)
+    if not isinstance(scene, Mesh):
+        raise UserError("dolly renders a mesh; this data source gives a point cloud")
     subject = scene if cfg.subject == "all" else submesh(scene, largest_part_mask(scene))
     renderer = RENDERERS.build(cfg.renderer)
     lo, hi = subject.bounds()
