@@ -7,7 +7,7 @@ from typing import Optional, Sequence
 import torch
 
 from l3d_app.diffusion.prior import DiffusionPrior, PromptEmbedding
-from l3d_app.losses.sds import guided_noise
+from l3d_app.diffusion.guidance import guided_noise
 
 
 @torch.no_grad()

@@ -13,6 +13,11 @@ is exactly ``g`` (summed over the batch and all elements, so every sample receiv
 ``g`` unscaled). The loss *value* equals ``0.5 ||g||^2``; it is a diagnostic, not an
 objective that decreases.
 
+Pixel-space SDS for a latent prior (``target_space="pixel"``, the course's variant): the same
+``g`` defines the target latent ``sg(z - g)``; both the current and the target latent are
+decoded and the loss is ``0.5 * sum((D(z) - sg(D(z - g)))^2)`` in RGB, so the gradient on
+``z`` is ``J_D^T (D(z) - D(z - g))`` (through the decoder's Jacobian) instead of ``g``.
+
 A non-finite ``g`` (a prior returning NaN/Inf) is never applied: by default it raises
 :class:`NonFiniteSDSGradient`; with ``on_nonfinite="flag"`` the returned loss is a NaN
 constant without a graph (the shared training loop then skips the step) and
@@ -27,10 +32,12 @@ from typing import Optional, Tuple
 import torch
 import torch.nn.functional as F
 
+from l3d_app.diffusion.guidance import guided_noise  # noqa: F401  (re-exported: older imports)
 from l3d_app.diffusion.prior import DiffusionPrior, PromptEmbedding
 from l3d_app.errors import UserError
 
 WEIGHTINGS = ("sds", "uniform")  # w(t) = 1 - abar_t (DreamFusion) | w(t) = 1
+TARGET_SPACES = ("model", "pixel")  # the loss on the model-space sample | on its decoded RGB (latent priors)
 
 
 class NonFiniteSDSGradient(FloatingPointError):
@@ -74,35 +81,23 @@ def sds_weight(alphas_cumprod: torch.Tensor, t: torch.Tensor, weighting: str = "
     raise UserError(f"unknown SDS weighting '{weighting}' (known: {', '.join(WEIGHTINGS)})")
 
 
-def guided_noise(prior: DiffusionPrior, x_t: torch.Tensor, t: torch.Tensor,
-                 embedding: PromptEmbedding, guidance_scale: float) -> torch.Tensor:
-    """Classifier-free-guided noise ``eps_u + s (eps_c - eps_u)`` from ONE batched call.
-
-    x_t: (B, *latent_shape); t: (B,) long; the embedding's leading dimension is 1 (one
-    prompt for the batch) or B (one prompt per sample). Returns float32 (B, *latent_shape).
-    """
-    B = x_t.shape[0]
-    cond = embedding.cond.to(x_t.device)
-    uncond = embedding.uncond.to(x_t.device)
-    cond = cond.expand(B, *cond.shape[1:])
-    uncond = uncond.expand(B, *uncond.shape[1:])
-    eps = prior.predict_noise(torch.cat([x_t, x_t]), torch.cat([t, t]), torch.cat([cond, uncond]))
-    eps_c, eps_u = eps.float().chunk(2)
-    return eps_u + float(guidance_scale) * (eps_c - eps_u)
-
-
 def sds_loss(prior: DiffusionPrior, x: torch.Tensor, embedding: PromptEmbedding,
              guidance_scale: float = 7.5, t_min: float = 0.02, t_max: float = 0.98,
              weighting: str = "sds", generator: Optional[torch.Generator] = None,
              t: Optional[torch.Tensor] = None, noise: Optional[torch.Tensor] = None,
-             on_nonfinite: str = "raise") -> SDSOutput:
+             on_nonfinite: str = "raise", target_space: str = "model") -> SDSOutput:
     """SDS loss of model-space ``x`` (B, *latent_shape), requiring grad, under ``prompt``.
 
     ``t``/``noise`` may be given (tests); otherwise drawn from ``generator`` (on x's device).
-    The prior runs without gradients; only ``x`` gets one.
+    The prior runs without gradients; only ``x`` gets one. ``target_space="pixel"`` (latent
+    priors only) compares the decoded current and target latents in RGB (module docstring).
     """
     if on_nonfinite not in ("raise", "flag"):
         raise UserError(f"on_nonfinite must be 'raise' or 'flag', got '{on_nonfinite}'")
+    if target_space not in TARGET_SPACES:
+        raise UserError(f"unknown SDS target space '{target_space}' (known: {', '.join(TARGET_SPACES)})")
+    if target_space == "pixel" and not prior.is_latent:
+        raise UserError("pixel-space SDS decodes latents: it needs a latent prior (space=latent)")
     B = x.shape[0]
     device = x.device
     if t is None:
@@ -131,7 +126,12 @@ def sds_loss(prior: DiffusionPrior, x: torch.Tensor, embedding: PromptEmbedding,
         return SDSOutput(loss=torch.full((), float("nan"), device=device), t=t, w=w,
                          grad=torch.zeros_like(grad), grad_norm=float("nan"), finite=False)
     target = (x0 - grad).to(x.dtype)
-    loss = 0.5 * F.mse_loss(x, target, reduction="sum")
+    if target_space == "pixel":
+        with torch.no_grad():
+            target_rgb = prior.decode(target.to(model_dtype)).float()
+        loss = 0.5 * F.mse_loss(prior.decode(x.to(model_dtype)).float(), target_rgb, reduction="sum")
+    else:
+        loss = 0.5 * F.mse_loss(x, target, reduction="sum")
     grad_norm = float(grad.flatten(1).norm(dim=1).mean())
     return SDSOutput(loss=loss, t=t, w=w, grad=grad, grad_norm=grad_norm, finite=True)
 
@@ -140,8 +140,11 @@ class SDSLoss:
     """SDS with fixed settings: ``SDSLoss(guidance_scale=...)(prior, x, embedding, generator)``."""
 
     def __init__(self, guidance_scale: float = 7.5, t_min: float = 0.02, t_max: float = 0.98,
-                 weighting: str = "sds", on_nonfinite: str = "raise"):
+                 weighting: str = "sds", on_nonfinite: str = "raise", target_space: str = "model"):
         timestep_range(1000, t_min, t_max)  # validates the fractions early
+        if target_space not in TARGET_SPACES:
+            raise UserError(f"unknown SDS target space '{target_space}' (known: {', '.join(TARGET_SPACES)})")
+        self.target_space = target_space
         if weighting not in WEIGHTINGS:
             raise UserError(f"unknown SDS weighting '{weighting}' (known: {', '.join(WEIGHTINGS)})")
         self.guidance_scale, self.t_min, self.t_max = float(guidance_scale), float(t_min), float(t_max)
@@ -150,7 +153,8 @@ class SDSLoss:
     def __call__(self, prior: DiffusionPrior, x: torch.Tensor, embedding: PromptEmbedding,
                  generator: Optional[torch.Generator] = None) -> SDSOutput:
         return sds_loss(prior, x, embedding, self.guidance_scale, self.t_min, self.t_max,
-                        self.weighting, generator, on_nonfinite=self.on_nonfinite)
+                        self.weighting, generator, on_nonfinite=self.on_nonfinite,
+                        target_space=self.target_space)
 
 
 def rgb_to_model_space(prior: DiffusionPrior, images: torch.Tensor, channels_last: bool = False,

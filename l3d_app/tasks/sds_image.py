@@ -11,6 +11,12 @@ image is first rolled by a random offset of up to ``shift`` pixels, which keeps 
 2 x 2 patch grid from printing a checkerboard); a non-finite gradient is never applied (the
 shared loop skips the step and counts it).
 
+Course variants (measured in docs/course_exercises.md): ``sds_target=pixel`` (latent priors:
+the decoded current and target latents are compared in RGB, see :mod:`l3d_app.losses.sds`),
+``lr_warmup`` / ``lr_final_ratio`` (linear warm-up over ``lr_warmup`` steps, then half a cosine
+down to ``lr_final_ratio * lr`` at the last step, :func:`l3d_app.runtime.lr_schedules.warmup_cosine`;
+stepped by the shared loop) and ``latent_clip`` (latents clamped to ``[-c, c]`` after each step).
+
 Outputs: ``final.png`` (native size and ``final_x8.png`` enlarged), ``progress.gif``
 (decoded image every ``frame_every`` steps), TensorBoard images ``sds/image`` over the
 iterations, and ``metrics.json``: the independent checker's verdict
@@ -34,6 +40,7 @@ from l3d_app.losses.sds import SDSLoss
 from l3d_app.metrics.prompt_match import check_image
 from l3d_app.registry import TASKS
 from l3d_app.runtime.media import save_gif, save_png
+from l3d_app.runtime.lr_schedules import warmup_cosine
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import require_positive
 
@@ -69,9 +76,18 @@ def sds_image(cfg, ctx) -> dict:
         x0 = x0 + float(cfg.init_noise) * torch.randn(x0.shape, generator=ctx.generator,
                                                       device=ctx.generator.device).to(x0.device)
     holder = torch.nn.ParameterDict({"x": torch.nn.Parameter(x0)})
-    trainable = Trainable({"image": holder}, torch.optim.Adam(holder.parameters(), lr=float(cfg.lr)))
+    optimizer = torch.optim.Adam(holder.parameters(), lr=float(cfg.lr))
+    warmup, final_ratio = int(cfg.get("lr_warmup", 0)), float(cfg.get("lr_final_ratio", 1.0))
+    if warmup < 0 or not 0 <= final_ratio <= 1:
+        raise UserError(f"need lr_warmup >= 0 and 0 <= lr_final_ratio <= 1, got {warmup}, {final_ratio}")
+    schedulers = [] if warmup == 0 and final_ratio == 1.0 else [torch.optim.lr_scheduler.LambdaLR(
+        optimizer, warmup_cosine(warmup, warmup, int(cfg.iters), final_ratio))]
+    trainable = Trainable({"image": holder}, optimizer, schedulers=schedulers)
+    clip = cfg.get("latent_clip")
+    if clip is not None and (not prior.is_latent or not float(clip) > 0):
+        raise UserError(f"latent_clip needs a latent prior (space=latent) and a value > 0, got {clip}")
     sds = SDSLoss(float(cfg.guidance_scale), float(cfg.t_min), float(cfg.t_max), str(cfg.weighting),
-                  on_nonfinite="flag")
+                  on_nonfinite="flag", target_space=str(cfg.get("sds_target", "model")))
     B = int(cfg.batch)
     t_top = float(cfg.t_max)
     t_end = None if cfg.get("t_max_end") is None else float(cfg.t_max_end)
@@ -103,6 +119,9 @@ def sds_image(cfg, ctx) -> dict:
         if not prior.is_latent:
             with torch.no_grad():
                 holder["x"].clamp_(-1, 1)
+        elif clip is not None:
+            with torch.no_grad():
+                holder["x"].clamp_(-float(clip), float(clip))
         if i % int(cfg.frame_every) == 0 or i == int(cfg.iters) - 1:
             img = decode()
             frames.append(_hwc(img))
@@ -119,6 +138,8 @@ def sds_image(cfg, ctx) -> dict:
         big_frames = F.interpolate(torch.stack(frames).permute(0, 3, 1, 2), scale_factor=4, mode="nearest")
         save_gif(ctx.path("progress.gif"), big_frames.permute(0, 2, 3, 1), fps=float(cfg.fps))
     metrics = {"prompt": str(cfg.prompt), "guidance_scale": float(cfg.guidance_scale), "space": str(cfg.space),
+               "sds_target": sds.target_space, "lr_warmup": warmup, "lr_final_ratio": final_ratio,
+               "latent_clip": None if clip is None else float(clip),
                "iters": result.step, "skipped_steps": result.skipped_steps,
                "final_grad_norm": round(float(last.get("grad_norm", float("nan"))), 5),
                "optimise_seconds": round(ctx.stopwatch.stages["optimise"], 3)}
