@@ -52,7 +52,6 @@ CONFIG_LIBS = ("omegaconf", "hydra")
 KNOWN: Dict[tuple, str] = {
     ("layers", "l3d_app.geometry.gaussian_ply"): "gauss (geometry -> models.gaussians)",
     ("layers", "l3d_app.render.gaussians"): "gauss (render -> models.sh)",
-    ("layers", "l3d_app.diffusion.sampling"): "course (diffusion.sampling <-> losses.sds)",
     ("layers", "l3d_app.metrics.surface_scores"): "rays: tasks/volsdf.py must pass depth_maps="
                                                   "render.rgbd.true_depth_maps(truth, cams, scale=4); "
                                                   "then house's temporary render fallback goes",
