@@ -13,6 +13,19 @@ from l3d_app.geometry.transforms import euler_xyz
 from l3d_app.registry import CAMERA_PATHS
 
 
+def cameras_up(cams: Cameras) -> torch.Tensor:
+    """(3,) unit mean "up" of a camera batch: the average of each camera's image-up axis in
+    world coordinates (minus the second row of ``R``, whose +Y points down the image).
+
+    For hand-held or orbit captures this is the scene's vertical (COLMAP and nerfstudio
+    worlds have no fixed up axis). Falls back to +Y if the cameras' ups cancel out.
+    """
+    mean = (-cams.R[:, 1, :].double()).mean(0)
+    if float(mean.norm()) < 1e-6:
+        return torch.tensor([0.0, 1.0, 0.0])
+    return (mean / mean.norm()).float().cpu()
+
+
 @CAMERA_PATHS.register("turntable")
 def turntable(num_frames: int, distance: float, elevation: float, fov: float, image_size: int,
               at: Sequence[float] = (0.0, 0.0, 0.0), device=None) -> Cameras:

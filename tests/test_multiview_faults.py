@@ -1,0 +1,116 @@
+"""Multi-view loaders: validation carved from train (never test), and bad poses in any camera
+format stop the run with one line naming the file and frame (exit 2 through main.py)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+import torch
+
+from l3d_app.data.nerf_formats import blender
+from l3d_app.data.nerf_views import carve_val
+from l3d_app.errors import UserError
+from l3d_app.geometry.cameras import look_at_cameras, to_opengl_c2w
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def write_blender(root, n_train=9, n_test=2, with_val=False, size=8):
+    """A NeRF-synthetic folder: n_train / (2 val) / n_test RGBA views around the origin."""
+    n = n_train + n_test + 2
+    cams = look_at_cameras(4.0, 20.0, torch.arange(n) * 360.0 / n, 40.0, size)
+    c2w = to_opengl_c2w(cams)
+    fov_x = 2 * float(torch.atan(size / 2 / cams.fx[0]))
+    counts = {"train": n_train, "val": 2, "test": n_test}
+    i = 0
+    for split in ("train", "val", "test"):
+        frames = []
+        for _ in range(counts[split]):
+            (root / split).mkdir(parents=True, exist_ok=True)
+            imageio.imwrite(root / split / f"r_{i}.png", np.full((size, size, 4), 200, np.uint8))
+            frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": c2w[i].tolist()})
+            i += 1
+        if split != "val" or with_val:
+            (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": fov_x, "frames": frames}))
+    return cams
+
+
+def test_carve_val_takes_every_kth_training_view_and_never_empties_train():
+    tr = torch.arange(10, 30)
+    train, val = carve_val(tr, 8)
+    assert val.tolist() == [17, 25] and len(train) == 18 and not set(train.tolist()) & set(val.tolist())
+    assert carve_val(tr[:3], 8)[1].numel() == 0 and carve_val(tr, 0)[1].numel() == 0
+
+
+def test_blender_val_from_json_or_carved_from_train_never_test(tmp_path):
+    write_blender(tmp_path / "a", with_val=True)
+    d = blender(str(tmp_path / "a"))
+    assert d.train.tolist() == list(range(9)) and d.val.tolist() == [9, 10] and d.test.tolist() == [11, 12]
+    write_blender(tmp_path / "b", with_val=False)
+    d = blender(str(tmp_path / "b"), val_every=4)
+    assert d.val.tolist() == [3, 7] and d.train.tolist() == [0, 1, 2, 4, 5, 6, 8] and d.test.tolist() == [9, 10]
+    assert d.up.tolist() == [0.0, 0.0, 1.0] and d.points is None and d.mesh is None
+    assert torch.equal(d.source_from_world, torch.eye(4, dtype=torch.float64))
+
+
+def _corrupt(root, frame, value):
+    meta = json.loads((root / "transforms_train.json").read_text())
+    meta["frames"][frame]["transform_matrix"] = value(np.array(meta["frames"][frame]["transform_matrix"])).tolist()
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+
+
+def _nan(m):
+    m[1, 2] = float("nan")
+    return m
+
+
+def _scaled(m):
+    m[:3, :3] *= 1.5
+    return m
+
+
+def _sheared(m):
+    m[0, 1] += 0.2
+    return m
+
+
+@pytest.mark.parametrize("value, problem", [(_nan, "non-finite"), (_scaled, "not rigid"), (_sheared, "not rigid")])
+def test_blender_bad_pose_names_file_and_frame(tmp_path, value, problem):
+    write_blender(tmp_path)
+    _corrupt(tmp_path, 4, value)
+    with pytest.raises(UserError, match=rf"transforms_train.json: frame 4 .*{problem}"):
+        blender(str(tmp_path))
+
+
+def test_truck_bad_pose_names_the_frame(tmp_path):
+    from l3d_app.data.nerf_formats import truck
+
+    (tmp_path / "imgs").mkdir()
+    (tmp_path / "poses").mkdir()
+    for k in range(3):
+        imageio.imwrite(tmp_path / "imgs" / f"frame{k:06d}.jpg", np.zeros((8, 8, 3), np.uint8))
+        pose = np.concatenate([np.eye(3).reshape(-1), [0, 0, 3], [2, 2], [0, 0]])
+        if k == 1:
+            pose[9] = np.inf
+        np.save(tmp_path / "poses" / f"frame{k:06d}.npy", pose)
+    with pytest.raises(UserError, match="frame000001.npy: camera pose has a non-finite"):
+        truck(str(tmp_path), test_indices=[2])
+
+
+def test_nan_pose_through_main_exits_2_with_one_line(tmp_path):
+    write_blender(tmp_path / "scene")
+    _corrupt(tmp_path / "scene", 2, _nan)
+    env = dict(os.environ, L3D_NO_PROGRESS="1")
+    out = subprocess.run([sys.executable, str(REPO / "main.py"), "task=train_nerf", "data=blender",
+                          f"data.root={tmp_path / 'scene'}", f"hydra.run.dir={tmp_path / 'run'}", "threads=1"],
+                         cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 2, out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in out.stderr, out.stderr
+    assert "transforms_train.json" in lines[0] and "frame 2" in lines[0] and "non-finite" in lines[0]
+    assert not (tmp_path / "run" / "metrics.json").exists() and not (tmp_path / "run" / "checkpoint.pt").exists()
