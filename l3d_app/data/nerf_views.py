@@ -58,6 +58,9 @@ class MultiViewData:
         source_from_world: (4, 4) float64 similarity mapping this dataset's world
             coordinates back to the source file's (identity unless the loader normalised
             the scene): ``x_src = M[:3, :3] @ x + M[:3, 3]``.
+        background_known: True when the images were composited on ``background`` (synthetic
+            data); False for photographs with a real backdrop, where ``background`` is only
+            an initial estimate and a field should learn what lies outside the scene box.
     """
 
     images: torch.Tensor
@@ -73,6 +76,7 @@ class MultiViewData:
     mesh: Optional[Mesh] = None
     up: Optional[torch.Tensor] = None
     source_from_world: Optional[torch.Tensor] = None
+    background_known: bool = True
 
     def __post_init__(self):
         if self.up is None:
