@@ -114,3 +114,101 @@ def test_nan_pose_through_main_exits_2_with_one_line(tmp_path):
     assert len(lines) == 1 and "Traceback" not in out.stderr, out.stderr
     assert "transforms_train.json" in lines[0] and "frame 2" in lines[0] and "non-finite" in lines[0]
     assert not (tmp_path / "run" / "metrics.json").exists() and not (tmp_path / "run" / "checkpoint.pt").exists()
+
+
+# ------------------------------------------------------------------ COLMAP
+def _colmap_scene(root, n=4, model="PINHOLE", binary=True):
+    from colmap_writer import write_scene
+
+    cams = look_at_cameras(3.0, 15.0, torch.arange(n) * 90.0, 50.0, 16)
+    K = np.tile([[14.0, 14.0, 8.0, 8.0]], (n, 1))
+    pts = np.random.default_rng(0).normal(size=(30, 3)) * 0.3
+    write_scene(root, cams.R.double().numpy(), cams.t.double().numpy(), K, (16, 16), pts,
+                np.zeros((30, 3), np.uint8), model=model, binary=binary, text=not binary)
+    return root
+
+
+def test_colmap_missing_image(tmp_path):
+    from l3d_app.data.colmap import colmap
+
+    (_colmap_scene(tmp_path) / "images" / "img_002.png").unlink()
+    with pytest.raises(UserError, match=r"image 'img_002.png' listed but missing"):
+        colmap(str(tmp_path))
+
+
+@pytest.mark.parametrize("binary", [True, False], ids=["bin", "txt"])
+def test_colmap_unsupported_camera_model(tmp_path, binary):
+    from l3d_app.data.colmap import colmap
+
+    _colmap_scene(tmp_path, model="OPENCV_FISHEYE", binary=binary)
+    with pytest.raises(UserError, match=r"camera 1: camera model OPENCV_FISHEYE is not supported"):
+        colmap(str(tmp_path))
+
+
+@pytest.mark.parametrize("name", ["cameras.bin", "images.bin", "points3D.bin"])
+def test_colmap_truncated_bin(tmp_path, name):
+    from l3d_app.data.colmap import colmap
+
+    f = _colmap_scene(tmp_path) / "sparse" / "0" / name
+    raw = f.read_bytes()
+    f.write_bytes(raw[: len(raw) - 7])
+    with pytest.raises(UserError, match=rf"{name}: file is truncated"):
+        colmap(str(tmp_path))
+
+
+@pytest.mark.parametrize("binary", [True, False], ids=["bin", "txt"])
+def test_colmap_nan_in_points3d(tmp_path, binary):
+    import struct
+
+    from l3d_app.data.colmap import colmap
+
+    sp = _colmap_scene(tmp_path, binary=binary) / "sparse" / "0"
+    if binary:
+        raw = bytearray((sp / "points3D.bin").read_bytes())
+        raw[8 + 8 + 8:8 + 8 + 16] = struct.pack("<d", float("nan"))      # point 1's y
+        (sp / "points3D.bin").write_bytes(bytes(raw))
+    else:
+        lines = (sp / "points3D.txt").read_text().splitlines()
+        tok = lines[0].split()
+        tok[2] = "nan"
+        (sp / "points3D.txt").write_text("\n".join([" ".join(tok)] + lines[1:]) + "\n")
+    with pytest.raises(UserError, match=r"points3D\.(bin|txt): point 1 has a non-finite coordinate"):
+        colmap(str(tmp_path))
+
+
+def test_colmap_mixed_sizes_under_one_camera(tmp_path):
+    from l3d_app.data.colmap import colmap
+
+    _colmap_scene(tmp_path, binary=False)
+    sp = tmp_path / "sparse" / "0"
+    imgs = sp / "images.txt"
+    lines = imgs.read_text().splitlines()
+    out = []
+    for ln in lines:                                    # every image uses camera 1
+        tok = ln.split()
+        if len(tok) == 10:
+            tok[8] = "1"
+            ln = " ".join(tok)
+        out.append(ln)
+    imgs.write_text("\n".join(out) + "\n")
+    imageio.imwrite(tmp_path / "images" / "img_003.png", np.zeros((20, 16, 3), np.uint8))
+    with pytest.raises(UserError, match=r"img_003.png: image is 16x20 but img_000.png under the same camera 1 is 16x16"):
+        colmap(str(tmp_path))
+
+
+def test_colmap_nan_pose(tmp_path):
+    from l3d_app.data.colmap import colmap
+
+    _colmap_scene(tmp_path, binary=False)
+    imgs = tmp_path / "sparse" / "0" / "images.txt"
+    lines = imgs.read_text().splitlines()
+    out = []
+    for ln in lines:
+        tok = ln.split()
+        if len(tok) == 10 and tok[9] == "img_001.png":
+            tok[6] = "nan"
+            ln = " ".join(tok)
+        out.append(ln)
+    imgs.write_text("\n".join(out) + "\n")
+    with pytest.raises(UserError, match=r"images.txt: img_001.png: camera pose has a non-finite"):
+        colmap(str(tmp_path))

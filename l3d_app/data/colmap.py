@@ -18,7 +18,7 @@ import torch
 
 from l3d_app.data.captures import (border_background, image_files, load_images, normalize_scene, scene_box,
                                    split_by_name)
-from l3d_app.data.colmap_model import qvec_to_rotmat, read_model
+from l3d_app.data.colmap_model import find_model_files, qvec_to_rotmat, read_model
 from l3d_app.data.nerf_views import MultiViewData, background_rgb
 from l3d_app.data.pose_checks import check_rigid_poses
 from l3d_app.errors import UserError
@@ -51,7 +51,7 @@ def colmap(root: str = None, images: str = "images", sparse: str = "sparse/0", d
     names = [model.names[i] for i in order]
     q, tvec, cam_ids = model.qvec[order], model.tvec[order], model.camera_ids[order]
     bad_q = ~np.isfinite(q).all(1) | (np.linalg.norm(q, axis=1) < 1e-8)
-    src = str(sparse_dir / "images")
+    src = str(find_model_files(sparse_dir)[1])
     if bad_q.any():
         raise UserError(f"{src}: image {names[int(bad_q.argmax())]}: camera pose has a non-finite or zero quaternion")
     R = torch.from_numpy(qvec_to_rotmat(q))
