@@ -26,6 +26,7 @@ MODULES = (
     "l3d_app.data.nerf_views",
     "l3d_app.data.nerf_formats",
     "l3d_app.data.colmap",
+    "l3d_app.data.nerfstudio",
     "l3d_app.tasks.train_nerf",
     "l3d_app.data.point_sets",
     "l3d_app.data.shape_parts",
