@@ -152,3 +152,22 @@ def test_pre_downscaled_image_folder(tmp_path):
     assert d.image_size == (H // 2, W // 2)
     torch.testing.assert_close(d.cameras.fx.double(), torch.from_numpy(K[:, 0] / 2), atol=1e-5, rtol=0)
     torch.testing.assert_close(d.cameras.cy.double(), torch.from_numpy(K[:, 3] / 2), atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("binary", [True, False], ids=["bin", "txt"])
+def test_exporter_round_trips_through_the_reader(tmp_path, binary):
+    from l3d_app.data.colmap_export import rotmat_to_qvec, write_colmap
+
+    cams = look_at_cameras(2.5, torch.tensor([-80.0, 0.0, 30.0, 89.0]), torch.tensor([0.0, 100.0, 200.0, 300.0]),
+                           45.0, 12)
+    imgs = torch.rand(4, 12, 12, 3, generator=torch.Generator().manual_seed(0))
+    pts = torch.randn(20, 3, dtype=torch.float64)
+    write_colmap(tmp_path, cams, imgs, pts, torch.rand(20, 3), binary=binary)
+    d = colmap(str(tmp_path), normalize=False, test_every=0, val_every=0)
+    torch.testing.assert_close(d.cameras.R, cams.R, atol=1e-6, rtol=0)
+    torch.testing.assert_close(d.cameras.t, cams.t, atol=1e-6, rtol=0)
+    torch.testing.assert_close(d.images, imgs, atol=1 / 255, rtol=0)
+    torch.testing.assert_close(d.points, pts.float())
+    # the quaternion of a 180-degree turn (w = 0) and of the identity
+    q = rotmat_to_qvec(np.stack([np.eye(3), np.diag([1.0, -1.0, -1.0])]))
+    np.testing.assert_allclose(np.abs(q), [[1, 0, 0, 0], [0, 1, 0, 0]], atol=1e-12)
