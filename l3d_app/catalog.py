@@ -27,6 +27,8 @@ MODULES = (
     "l3d_app.data.nerf_formats",
     "l3d_app.data.colmap",
     "l3d_app.data.nerfstudio",
+    "l3d_app.data.course_rgbd",
+    "l3d_app.data.course_nerf",
     "l3d_app.tasks.train_nerf",
     "l3d_app.data.point_sets",
     "l3d_app.data.shape_parts",
