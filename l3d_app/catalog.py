@@ -45,6 +45,7 @@ MODULES = (
     "l3d_app.models.gaussians",
     "l3d_app.tasks.gs_train",
     "l3d_app.tasks.gs_render",
+    "l3d_app.tasks.render_path",
     "l3d_app.models.sdf_net",
     "l3d_app.models.sdf_grid",
     "l3d_app.data.bunny",

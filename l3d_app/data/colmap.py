@@ -20,7 +20,7 @@ from l3d_app.data.captures import (border_background, image_files, load_images, 
                                    split_by_name)
 from l3d_app.data.colmap_model import find_model_files, qvec_to_rotmat, read_model
 from l3d_app.data.nerf_views import MultiViewData, background_rgb
-from l3d_app.data.pose_checks import check_rigid_poses
+from l3d_app.geometry.pose_checks import check_rigid_poses
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.registry import DATASETS

@@ -14,7 +14,7 @@
   bilinearly as the course does (NDC intrinsics are unchanged by an isotropic resize); the
   course's own train / val / test split is used as is.
 
-Poses are checked finite and rigid (:mod:`l3d_app.data.pose_checks`).
+Poses are checked finite and rigid (:mod:`l3d_app.geometry.pose_checks`).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import torch
 
 from l3d_app.data.nerf_formats import _read_image, _to_float_rgb
 from l3d_app.data.nerf_views import MultiViewData, background_rgb, carve_val
-from l3d_app.data.pose_checks import check_rigid_poses
+from l3d_app.geometry.pose_checks import check_rigid_poses
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import from_opengl_c2w, from_pytorch3d
 from l3d_app.registry import DATASETS

@@ -10,7 +10,7 @@
   A missing ``transforms_val.json``: validation is carved from the training views (every
   ``val_every``-th, :func:`~l3d_app.data.nerf_views.carve_val`), never from test. Up is +Z
   (Blender's world). Every ``transform_matrix`` must be finite and rigid
-  (:func:`~l3d_app.data.pose_checks.check_rigid_poses`), else one line names the frame.
+  (:func:`~l3d_app.geometry.pose_checks.check_rigid_poses`), else one line names the frame.
 * ``data=truck data.root=DIR``: the course truck scene (``../shared/data/README.md``):
   ``imgs/frameXXXXXX.jpg`` and ``poses/frameXXXXXX.npy`` = ``[R (9, row-major) | T (3) |
   F (2, NDC) | C (2, NDC)]`` in the PyTorch3D convention, converted with
@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from l3d_app.data.nerf_views import MultiViewData, background_rgb, carve_val
-from l3d_app.data.pose_checks import check_finite, check_rigid_poses
+from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import from_opengl_c2w, from_pytorch3d, stack_cameras
 from l3d_app.registry import DATASETS

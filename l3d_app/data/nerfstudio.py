@@ -30,7 +30,7 @@ import torch
 from l3d_app.data.captures import (border_background, image_files, load_images, normalize_scene, scene_box,
                                    split_by_name)
 from l3d_app.data.nerf_views import MultiViewData, background_rgb
-from l3d_app.data.pose_checks import check_finite, check_rigid_poses
+from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras, from_opengl_c2w
 from l3d_app.registry import DATASETS
