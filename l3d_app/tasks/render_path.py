@@ -47,9 +47,12 @@ PANELS = ("color", "depth", "alpha")
 def _field_renderer(fn, chunk: int) -> Render:
     from l3d_app.render.volume import render_rays_chunked
 
+    def keep(o, d):
+        return {k: v for k, v in fn(o, d).items() if k in ("color", "depth", "opacity")}
+
     def render(cams: Cameras) -> Dict[str, torch.Tensor]:
         o, d = camera_rays(cams, normalize=True)
-        out = render_rays_chunked(fn, o, d, chunk)
+        out = render_rays_chunked(keep, o, d, chunk)
         return {"color": out["color"], "depth": out["depth"], "alpha": out["opacity"]}
     return render
 
