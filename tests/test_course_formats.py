@@ -32,7 +32,7 @@ def _fake_pytorch3d():
     return mods, PerspectiveCameras
 
 
-def write_rgbd_pkl(path, mesh):
+def write_rgbd_pkl(path, mesh, scale_R=1.0):
     cams = look_at_cameras(3.0, torch.tensor([20.0, -10.0]), torch.tensor([30.0, 200.0]), 50.0, S)
     views = rgbd_from_mesh(mesh, cams)
     R, T, focal, pp = to_pytorch3d(cams)
@@ -45,7 +45,7 @@ def write_rgbd_pkl(path, mesh):
             data[f"rgb{k}"] = views["rgb"][k - 1].numpy()
             data[f"depth{k}"] = views["depth"][k - 1].numpy()
             data[f"mask{k}"] = views["mask"][k - 1].float().numpy()
-            data[f"cameras{k}"] = P3(R=R[k - 1:k], T=T[k - 1:k], focal_length=focal[k - 1:k],
+            data[f"cameras{k}"] = P3(R=R[k - 1:k] * (scale_R if k == 2 else 1.0), T=T[k - 1:k], focal_length=focal[k - 1:k],
                                      principal_point=pp[k - 1:k], _in_ndc=True, device=torch.device("cpu"), _N=1)
         with open(path, "wb") as f:
             pickle.dump(data, f)
@@ -110,6 +110,9 @@ def test_rgbd_pickle_refuses_other_classes_and_bad_views(tmp_path):
         course_rgbd(str(tmp_path / "short.pkl"), view="1")
     with pytest.raises(UserError, match="view must be 1, 2 or union"):
         course_rgbd(str(tmp_path / "short.pkl"), view="3")
+    write_rgbd_pkl(tmp_path / "scaled.pkl", icosphere(1, 0.8), scale_R=1.2)
+    with pytest.raises(UserError, match=r"scaled.pkl: cameras2: camera: camera rotation is not rigid"):
+        course_rgbd(str(tmp_path / "scaled.pkl"))
 
 
 def test_tiny_nerf_npz(tmp_path):

@@ -31,6 +31,7 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras, from_pytorch3d
 from l3d_app.geometry.pointcloud import PointCloud
+from l3d_app.geometry.pose_checks import check_rigid_poses
 from l3d_app.geometry.rgbd import concat_clouds, unproject_depth
 from l3d_app.registry import DATASETS
 from l3d_app.runtime.paths import resolve_path
@@ -90,8 +91,7 @@ def course_camera(cam, size: int, source: str) -> Cameras:
         pp = _t(d.get("principal_point", torch.zeros(2))).reshape(-1)[:2]
         if d.get("_in_ndc", True) is False:
             raise UserError(f"{source}: screen-space PyTorch3D cameras are not supported (need in_ndc=True)")
-    if not bool(torch.isfinite(R).all() and torch.isfinite(T).all()):
-        raise UserError(f"{source}: camera pose has a non-finite value (NaN or inf)")
+    check_rigid_poses(R, T, source, ["camera"])
     return from_pytorch3d(R, T, focal, pp, image_size=(size, size), in_ndc=True)
 
 
