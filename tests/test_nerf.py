@@ -253,7 +253,8 @@ def test_truck_loads_with_the_course_split():
 
     data = truck(str(course_data("truck")))
     assert data.images.shape == (202, 90, 160, 3)
-    assert data.test.tolist() == [33, 67, 101, 134, 168] and len(data.train) == 197
+    assert data.test.tolist() == [33, 67, 101, 134, 168] and len(data.train) + len(data.val) == 197
+    assert not set(data.val.tolist()) & set(data.test.tolist()) and len(data.val) > 0
     assert float(data.cameras.fx[0]) == pytest.approx(74.6, abs=0.5)
     assert bool((data.scene_box[1] > data.scene_box[0]).all())
 

@@ -7,13 +7,19 @@
   :func:`~l3d_app.geometry.cameras.from_opengl_c2w`. RGBA PNGs are composited on the
   configured background (``rgb * a + bg * (1 - a)``); ``downscale`` shrinks images by an
   integer factor (area averaging of premultiplied colour) and the focal length with them.
-  A missing ``transforms_val.json`` gives an empty validation split.
+  A missing ``transforms_val.json``: validation is carved from the training views (every
+  ``val_every``-th, :func:`~l3d_app.data.nerf_views.carve_val`), never from test. Up is +Z
+  (Blender's world). Every ``transform_matrix`` must be finite and rigid
+  (:func:`~l3d_app.geometry.pose_checks.check_rigid_poses`), else one line names the frame.
 * ``data=truck data.root=DIR``: the course truck scene (``../shared/data/README.md``):
   ``imgs/frameXXXXXX.jpg`` and ``poses/frameXXXXXX.npy`` = ``[R (9, row-major) | T (3) |
   F (2, NDC) | C (2, NDC)]`` in the PyTorch3D convention, converted with
   :func:`~l3d_app.geometry.cameras.from_pytorch3d`; the course test split
   ``[33, 67, 101, 134, 168]``; the scene box is the bounding box of
-  ``points/points_10000.npy`` grown by ``box_margin`` of its extent per side.
+  ``points/points_10000.npy`` grown by ``box_margin`` of its extent per side; those points
+  are the dataset's initial ``points`` (no colours). Validation: every ``val_every``-th of
+  the 197 training frames; the 5 published test frames are never touched. Up: the
+  cameras' mean up vector.
 
 Relative roots are resolved with :func:`~l3d_app.runtime.paths.resolve_path`.
 """
@@ -28,7 +34,8 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from l3d_app.data.nerf_views import MultiViewData, background_rgb
+from l3d_app.data.nerf_views import MultiViewData, background_rgb, carve_val
+from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import from_opengl_c2w, from_pytorch3d, stack_cameras
 from l3d_app.registry import DATASETS
@@ -69,9 +76,10 @@ def _to_float_rgb(img: np.ndarray, bg: torch.Tensor, downscale: int) -> torch.Te
 @DATASETS.register("blender")
 def blender(root: str = None, background="white", downscale: int = 1,
             scene_box: Sequence[Sequence[float]] = ((-1.5,) * 3, (1.5,) * 3), max_views: int = 0,
-            device=None) -> MultiViewData:
+            val_every: int = 8, device=None) -> MultiViewData:
     """A NeRF-synthetic folder (see the module docstring); ``max_views`` > 0 keeps the first
-    views of each split (quick runs)."""
+    views of each split (quick runs); ``val_every`` carves validation from train when the
+    folder has no ``transforms_val.json``."""
     if root is None or not str(root).strip() or str(root) == "???":
         raise UserError("data=blender needs a folder: add data.root=DIR (with transforms_train.json ...)")
     folder = resolve_path(str(root))
@@ -111,26 +119,31 @@ def blender(root: str = None, background="white", downscale: int = 1,
             if m.shape not in ((4, 4), (3, 4)):
                 raise UserError(f"{path}: frame {i} transform_matrix must be 4x4, got {tuple(m.shape)}")
             c2w.append(m[:3])
+        c2w_all = torch.stack(c2w)
+        check_rigid_poses(c2w_all[:, :3, :3], c2w_all[:, :3, 3], path.name,
+                          [f"frame {i} ({fr['file_path']})" for i, fr in enumerate(frames)])
         sizes = {tuple(im.shape) for im in imgs}
         if len(sizes) != 1:
             raise UserError(f"{path}: images have different sizes {sorted(sizes)}")
         h, w = imgs[0].shape[:2]
         focal = 0.5 * w / math.tan(0.5 * float(meta["camera_angle_x"]))
-        cams.append(from_opengl_c2w(torch.stack(c2w), focal, focal, w / 2.0, h / 2.0, w, h).to(dtype=torch.float32))
+        cams.append(from_opengl_c2w(c2w_all, focal, focal, w / 2.0, h / 2.0, w, h).to(dtype=torch.float32))
         images += imgs
         splits[split] = torch.arange(start, start + len(imgs))
         start += len(imgs)
     if len({(c.width, c.height) for c in cams}) != 1:
         raise UserError(f"splits in {folder} have different image sizes")
+    if not (folder / "transforms_val.json").is_file():
+        splits["train"], splits["val"] = carve_val(splits["train"], int(val_every))
     box = torch.tensor(scene_box, dtype=torch.float32).reshape(2, 3)
     data = MultiViewData(torch.stack(images), stack_cameras(cams), splits["train"], splits["val"], splits["test"],
-                         bg, box, name=f"blender:{folder.name}")
+                         bg, box, name=f"blender:{folder.name}", up=torch.tensor([0.0, 0.0, 1.0]))
     return data if device is None else data.to(device)
 
 
 @DATASETS.register("truck")
 def truck(root: str = "../shared/data/truck", test_indices: Sequence[int] = (33, 67, 101, 134, 168),
-          background="black", box_margin: float = 0.1, device=None) -> MultiViewData:
+          background="black", box_margin: float = 0.1, val_every: int = 20, device=None) -> MultiViewData:
     """The course truck scene (see the module docstring): 202 images (90, 160, 3)."""
     folder = resolve_path(str(root))
     img_dir, pose_dir = folder / "imgs", folder / "poses"
@@ -150,6 +163,8 @@ def truck(root: str = "../shared/data/truck", test_indices: Sequence[int] = (33,
         poses.append(pose)
         images.append(torch.from_numpy(_read_image(f)[..., :3].astype(np.float32) / 255.0))
     p = torch.tensor(np.stack(poses))
+    check_rigid_poses(p[:, :9].reshape(-1, 3, 3), p[:, 9:12], str(pose_dir), [f.stem + ".npy" for f in files])
+    check_finite(p[:, 12:], str(pose_dir), "pose intrinsics of frame")
     h, w = images[0].shape[:2]
     cams = from_pytorch3d(p[:, :9].reshape(-1, 3, 3), p[:, 9:12], p[:, 12:14], p[:, 14:16],
                           image_size=(h, w), in_ndc=True).to(dtype=torch.float32)
@@ -158,15 +173,17 @@ def truck(root: str = "../shared/data/truck", test_indices: Sequence[int] = (33,
     if len(test) and (int(test.max()) >= n or int(test.min()) < 0):
         raise UserError(f"truck test indices {list(test_indices)} out of range for {n} images")
     held = set(test.tolist())
-    train = torch.tensor([i for i in range(n) if i not in held], dtype=torch.long)
+    train, val = carve_val(torch.tensor([i for i in range(n) if i not in held], dtype=torch.long), int(val_every))
     pts_file = folder / "points" / "points_10000.npy"
+    pts = None
     if pts_file.is_file():
-        pts = torch.from_numpy(np.load(pts_file).astype(np.float32))
+        pts = torch.from_numpy(np.load(pts_file).astype(np.float32)).reshape(-1, 3)
+        check_finite(pts, str(pts_file), "point")
         lo, hi = pts.min(0).values, pts.max(0).values
     else:
         centres = cams.centers()
         lo, hi = centres.min(0).values, centres.max(0).values
     pad = float(box_margin) * (hi - lo)
-    data = MultiViewData(torch.stack(images), cams, train, torch.zeros(0, dtype=torch.long), test,
-                         background_rgb(background), torch.stack([lo - pad, hi + pad]), name="truck")
+    data = MultiViewData(torch.stack(images), cams, train, val, test,
+                         background_rgb(background), torch.stack([lo - pad, hi + pad]), name="truck", points=pts)
     return data if device is None else data.to(device)

@@ -18,13 +18,14 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import dataclass
-from typing import Sequence, Tuple
+from dataclasses import dataclass, replace
+from typing import Optional, Sequence, Tuple
 
 import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry import primitives as P
+from l3d_app.geometry.camera_paths import cameras_up
 from l3d_app.geometry.cameras import Cameras, look_at_cameras
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.transforms import euler_xyz
@@ -37,15 +38,29 @@ BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 @dataclass
 class MultiViewData:
-    """Posed images for a radiance field.
+    """Posed images for a radiance field, and what else the source knows about its scene.
+
+    Tasks read these attributes only (never the data source's name), so every loader
+    fills the same fields:
 
     Attributes:
         images: (N, H, W, 3) float32 in [0, 1] (composited on ``background``).
         cameras: N :class:`Cameras` (internal OpenCV convention).
-        train, val, test: (n_split,) long view indices.
+        train, val, test: (n_split,) long view indices (disjoint; val never from test).
         background: (3,) RGB in [0, 1] behind the scene.
         scene_box: (2, 3) world box (min row, max row) that holds the scene.
         name: where it came from.
+        points: (P, 3) float32 initial points in world units (SfM points, a scan) or None.
+        point_colors: (P, 3) float32 in [0, 1] matching ``points``, or None.
+        mesh: the ground-truth :class:`Mesh` when the source knows it, else None.
+        up: (3,) unit world up vector of the scene (orbits and turntables turn about it);
+            ``None`` at construction means "the cameras' mean up vector".
+        source_from_world: (4, 4) float64 similarity mapping this dataset's world
+            coordinates back to the source file's (identity unless the loader normalised
+            the scene): ``x_src = M[:3, :3] @ x + M[:3, 3]``.
+        background_known: True when the images were composited on ``background`` (synthetic
+            data); False for photographs with a real backdrop, where ``background`` is only
+            an initial estimate and a field should learn what lies outside the scene box.
     """
 
     images: torch.Tensor
@@ -56,15 +71,48 @@ class MultiViewData:
     background: torch.Tensor
     scene_box: torch.Tensor
     name: str = ""
+    points: Optional[torch.Tensor] = None
+    point_colors: Optional[torch.Tensor] = None
+    mesh: Optional[Mesh] = None
+    up: Optional[torch.Tensor] = None
+    source_from_world: Optional[torch.Tensor] = None
+    background_known: bool = True
+
+    def __post_init__(self):
+        if self.up is None:
+            self.up = cameras_up(self.cameras)
+        self.up = torch.nn.functional.normalize(torch.as_tensor(self.up, dtype=torch.float32).reshape(3), dim=0)
+        if self.source_from_world is None:
+            self.source_from_world = torch.eye(4, dtype=torch.float64)
+        if self.points is not None and self.point_colors is not None \
+                and self.point_colors.shape != self.points.shape:
+            raise ValueError(f"point_colors {tuple(self.point_colors.shape)} must match points "
+                             f"{tuple(self.points.shape)}")
 
     def to(self, device) -> "MultiViewData":
-        return MultiViewData(self.images.to(device), self.cameras.to(device), self.train, self.val, self.test,
-                             self.background.to(device), self.scene_box.to(device), self.name)
+        move = lambda x: None if x is None else x.to(device)  # noqa: E731
+        mesh = self.mesh.to(device) if self.mesh is not None and hasattr(self.mesh, "to") else self.mesh
+        return replace(self, images=self.images.to(device), cameras=self.cameras.to(device),
+                       background=self.background.to(device), scene_box=self.scene_box.to(device),
+                       points=move(self.points), point_colors=move(self.point_colors), mesh=mesh,
+                       up=self.up.to(device))
 
     @property
     def image_size(self) -> Tuple[int, int]:
         """(H, W)."""
         return self.cameras.height, self.cameras.width
+
+
+def carve_val(train: torch.Tensor, val_every: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Split training view indices into (train, val): every ``val_every``-th training view
+    (positions k-1, 2k-1, ... of ``train``) becomes validation. ``val_every <= 0`` or fewer
+    than ``val_every`` training views gives an empty val (training is never emptied)."""
+    k = int(val_every)
+    if k <= 0 or len(train) < k:
+        return train, train[:0]
+    pick = torch.zeros(len(train), dtype=torch.bool)
+    pick[k - 1::k] = True
+    return train[~pick], train[pick]
 
 
 def background_rgb(background) -> torch.Tensor:
@@ -185,5 +233,6 @@ def nerf_builtin(image_size: int = 64, n_train: int = 100, n_val: int = 4, n_tes
         with atomic_path(path) as tmp:
             torch.save({"images": images.contiguous(), "key": key}, tmp)
     box = torch.tensor(scene_box, dtype=torch.float32).reshape(2, 3)
-    data = MultiViewData(images.float(), cams, tr, va, te, bg, box, name="nerf_builtin")
+    data = MultiViewData(images.float(), cams, tr, va, te, bg, box, name="nerf_builtin", mesh=nerf_scene(),
+                         up=torch.tensor([0.0, 1.0, 0.0]))
     return data if device is None else data.to(device)
