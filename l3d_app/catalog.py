@@ -39,6 +39,7 @@ MODULES = (
     "l3d_app.tasks.fit_point",
     "l3d_app.tasks.fit_mesh",
     "l3d_app.models.gaussians",
+    "l3d_app.strategies",
     "l3d_app.tasks.gs_train",
     "l3d_app.tasks.gs_render",
     "l3d_app.models.sdf_net",
