@@ -59,8 +59,9 @@ def test_gs_train_tiny_run_reaches_a_quality_floor_val_during_test_once(compose,
     hist = m["history"]
     assert [h["step"] for h in hist] == [40, 80, 120]
     assert hist[-1]["psnr"] == pytest.approx(m["val_psnr"], abs=1e-3)     # history = val figures
-    assert hist[-1]["psnr"] > hist[0]["psnr"] + 1.0
-    assert m["psnr"] > 18.5 and m["ssim"] > 0.5        # test views, read once (measured 19.6 dB, 0.63; 17.0 at step 40)
+    # untrained (1 step): val 15.7 dB / 0.29, test 16.1 / 0.32; this run measured val 18.5 / 0.60, test 19.5 / 0.62
+    assert m["val_psnr"] > 17.5 and m["val_ssim"] > 0.5
+    assert m["psnr"] > 18.5 and m["ssim"] > 0.5        # test views, read once at the end
     assert m["iters"] == 120 and m["n_gaussians"] != 1500                  # densification ran
     assert m["seconds_per_step"] > 0 and "seconds_per_step_first_100" in m
     ev = _events(tmp_path / "run")
