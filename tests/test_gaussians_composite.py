@@ -182,3 +182,24 @@ def test_screen_coverage_of_one_round_splat_is_its_disc_and_shrinking_bounds_it(
     after = float(screen_coverage(many, out, q, op, cams)[0])
     assert 9.0 <= after <= 10.0 + 1e-6 and torch.all(out < ls200)
     assert torch.equal(shrink_to_coverage(means, ls, quats, torch.tensor([o]), cams, max_coverage=100.0), ls)
+
+
+def test_isotropic_log_scales_render_and_differentiate_like_three_equal_ones():
+    from l3d_app.geometry.cameras import Cameras
+    from l3d_app.render.gaussians import rasterize_gaussians
+
+    g = torch.Generator().manual_seed(3)
+    n = 40
+    means = (torch.rand(n, 3, generator=g) - 0.5)
+    quats = torch.randn(n, 4, generator=g)
+    op = torch.randn(n, generator=g)
+    sh = torch.randn(n, 1, 3, generator=g)
+    cams = Cameras(torch.eye(3)[None], torch.tensor([[0.0, 0.0, 3.0]]), 30.0, 30.0, 12.0, 12.0, 24, 24)
+    one = torch.log(0.05 + 0.1 * torch.rand(n, 1, generator=g)).requires_grad_(True)
+    three = one.detach().expand(n, 3).clone().requires_grad_(True)
+    a = rasterize_gaussians(means, one, quats, op, sh, 0, cams)["color"]
+    b = rasterize_gaussians(means, three, quats, op, sh, 0, cams)["color"]
+    torch.testing.assert_close(a, b)
+    a.square().sum().backward()
+    b.square().sum().backward()
+    torch.testing.assert_close(one.grad[:, 0], three.grad.sum(-1))      # chain rule through the repeat

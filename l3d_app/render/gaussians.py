@@ -148,7 +148,8 @@ def rasterize_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: to
 
     Args:
         means: (N, 3) centres, world units.
-        log_scales: (N, 3) log of the per-axis standard deviations (world units).
+        log_scales: (N, 3) log of the per-axis standard deviations (world units), or
+            (N, 1) for isotropic splats (one scale, repeated on the three axes).
         quats: (N, 4) rotations ``(w, x, y, z)``, any norm (zero -> identity).
         opacity_logits: (N,) or (N, 1); opacity = sigmoid(logit).
         sh_coeffs: (N, K, 3) spherical-harmonic colour coefficients, K >= (sh_degree+1)^2.
@@ -172,6 +173,7 @@ def rasterize_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: to
     """
     dt = means.dtype
     N = means.shape[0]
+    log_scales = log_scales.expand(N, 3)
     cams = cams.to(device=means.device, dtype=dt)
     bg = torch.zeros(3, dtype=dt, device=means.device) if background is None else \
         torch.as_tensor(background, dtype=dt, device=means.device).reshape(3)
