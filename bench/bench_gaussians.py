@@ -6,6 +6,8 @@ Run by hand, never in tests (each configuration trains for ``--budget`` seconds)
     python bench/bench_gaussians.py --ablations           # + no SH, isotropic, no SSIM, no densification
     python bench/bench_gaussians.py --budget 40 --marks 10,20,40 --doc /tmp/g.md   # a quick check
     python bench/bench_gaussians.py --raster              # also: one fwd+bwd of 10k splats, timed
+    python bench/bench_gaussians.py --no-train [--state outputs/.../checkpoint.pt]   # that timing only
+    python bench/bench_gaussians.py --short               # 180 s per configuration, marks 1 and 3 min
 
 Each configuration is ONE ``gs_train data=truck`` run through ``main.py`` with
 ``time_budget=--budget`` (wall seconds of the whole task, evaluations and outputs included),
@@ -123,6 +125,8 @@ def bench_raster(args) -> dict:
     data = truck(root=str(root))
     pts = torch.from_numpy(np.load(root / "points" / "points_10000.npy").astype(np.float32))
     m = init_from_points(pts, None, opacity=0.1)
+    if args.state:                                     # a trained, densified model from a gs_train checkpoint
+        m.load_state_dict(torch.load(args.state, weights_only=False)["trainable"]["modules"]["gaussians"])
     cam, target = data.cameras[int(data.train[0])], data.images[int(data.train[0])]
     wall, cpu = [], []
     for i in range(args.repeats + 2):
@@ -152,8 +156,13 @@ def main() -> None:
                     + ", ".join([*CONFIGS, *ABLATIONS]) + ")")
     ap.add_argument("--ablations", action="store_true", help="also run the four one-part-off ablations")
     ap.add_argument("--raster", action="store_true", help="also time one rasteriser fwd+bwd")
+    ap.add_argument("--no-train", action="store_true", help="only the rasteriser timing")
+    ap.add_argument("--state", default="", help="time this gs_train checkpoint's Gaussians instead")
+    ap.add_argument("--short", action="store_true", help="--budget 180 --marks 60,180")
     ap.add_argument("--repeats", type=int, default=10)
     args = ap.parse_args()
+    if args.short:
+        args.budget, args.marks = 180.0, "60,180"
     marks = [float(x) for x in args.marks.split(",") if x]
     table_of = {**CONFIGS, **(ABLATIONS if args.ablations else {})}
     if args.configs:
@@ -163,8 +172,10 @@ def main() -> None:
             raise SystemExit(f"unknown config(s) {unknown}; known: {', '.join([*CONFIGS, *ABLATIONS])}")
         table_of = {n: {**CONFIGS, **ABLATIONS}[n] for n in wanted}
     os.environ.setdefault("L3D_NO_PROGRESS", "1")
-    if args.raster:
+    if args.raster or args.no_train:
         print(json.dumps(bench_raster(args), indent=1))
+        if args.no_train:
+            return
     before = uptime()
     results = {}
     for name, (what, overrides) in table_of.items():
