@@ -155,3 +155,51 @@ def test_projection_backward_matches_autograd_reference():
     for name, a, b in zip(("means", "log_scales", "quats"), g1, g2):
         assert torch.isfinite(a).all(), name
         torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-7, msg=name)
+
+
+def test_screen_coverage_of_one_round_splat_is_its_disc_and_shrinking_bounds_it():
+    """A round splat of std s at depth z, focal f: sigma_px^2 = (f s / z)^2 + 0.3 (low-pass),
+    disc radius sigma_px sqrt(2 ln(255 o)); coverage = pi r^2 / (W H)."""
+    import math
+
+    from l3d_app.geometry.cameras import Cameras
+    from l3d_app.render.gaussians_coverage import screen_coverage, shrink_to_coverage
+
+    W = H = 64
+    f, z, s, o = 80.0, 4.0, 0.2, 0.5
+    cams = Cameras(torch.eye(3)[None], torch.tensor([[0.0, 0.0, z]]), f, f, W / 2, H / 2, W, H)
+    means = torch.zeros(1, 3)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]])
+    ls = torch.full((1, 3), math.log(s))
+    r2 = ((f * s / z) ** 2 + 0.3) * 2 * math.log(255 * o)
+    cov = float(screen_coverage(means, ls, quats, torch.tensor([o]), cams)[0])
+    assert cov == pytest.approx(math.pi * r2 / (W * H), rel=1e-4)
+    # 200 copies: coverage 200x; shrinking to a bound of 10 lands at (not far below) the bound
+    many = means.expand(200, 3).contiguous()
+    q, op = quats.expand(200, 4), torch.full((200,), o)
+    ls200 = ls.expand(200, 3)
+    out = shrink_to_coverage(many, ls200, q, op, cams, max_coverage=10.0)
+    after = float(screen_coverage(many, out, q, op, cams)[0])
+    assert 9.0 <= after <= 10.0 + 1e-6 and torch.all(out < ls200)
+    assert torch.equal(shrink_to_coverage(means, ls, quats, torch.tensor([o]), cams, max_coverage=100.0), ls)
+
+
+def test_isotropic_log_scales_render_and_differentiate_like_three_equal_ones():
+    from l3d_app.geometry.cameras import Cameras
+    from l3d_app.render.gaussians import rasterize_gaussians
+
+    g = torch.Generator().manual_seed(3)
+    n = 40
+    means = (torch.rand(n, 3, generator=g) - 0.5)
+    quats = torch.randn(n, 4, generator=g)
+    op = torch.randn(n, generator=g)
+    sh = torch.randn(n, 1, 3, generator=g)
+    cams = Cameras(torch.eye(3)[None], torch.tensor([[0.0, 0.0, 3.0]]), 30.0, 30.0, 12.0, 12.0, 24, 24)
+    one = torch.log(0.05 + 0.1 * torch.rand(n, 1, generator=g)).requires_grad_(True)
+    three = one.detach().expand(n, 3).clone().requires_grad_(True)
+    a = rasterize_gaussians(means, one, quats, op, sh, 0, cams)["color"]
+    b = rasterize_gaussians(means, three, quats, op, sh, 0, cams)["color"]
+    torch.testing.assert_close(a, b)
+    a.square().sum().backward()
+    b.square().sum().backward()
+    torch.testing.assert_close(one.grad[:, 0], three.grad.sum(-1))      # chain rule through the repeat

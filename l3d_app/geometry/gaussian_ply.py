@@ -5,6 +5,10 @@ rot_0..3``. As in the reference implementation, ``f_rest`` is stored channel-maj
 (all 15 coefficients of R, then G, then B), ``opacity`` is the logit, ``scale_*`` the log
 standard deviations and ``rot_*`` the quaternion ``(w, x, y, z)``; normals are zeros.
 Files with fewer ``f_rest`` (lower SH degree) load with the missing coefficients zero.
+
+Plain tensors in and out (geometry does not know the model class):
+``save_gaussian_ply(path, **model.tensors())`` and ``GaussianModel(**load_gaussian_ply(path))``
+(:class:`~l3d_app.models.gaussians.GaussianModel`).
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ from __future__ import annotations
 import os
 import re
 from pathlib import Path
+from typing import Dict
 
 import numpy as np
 import torch
@@ -26,15 +31,17 @@ def gaussian_ply_fields(n_rest: int = 45) -> list:
                                                          "rot_0", "rot_1", "rot_2", "rot_3"])
 
 
-def save_gaussian_ply(path: os.PathLike, model) -> Path:
-    """Write a :class:`~l3d_app.models.gaussians.GaussianModel` (or any object with
-    means, log_scales, quats, opacity_logits, sh_dc (N,1,3), sh_rest (N,K-1,3))."""
+def save_gaussian_ply(path: os.PathLike, means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
+                      opacity_logits: torch.Tensor, sh_dc: torch.Tensor, sh_rest: torch.Tensor) -> Path:
+    """Write N Gaussians: means (N, 3), log_scales (N, 3) or (N, 1) (isotropic: written as
+    three equal scales), quats (N, 4) ``(w, x, y, z)``, opacity_logits (N,), sh_dc (N, 1, 3),
+    sh_rest (N, K-1, 3)."""
     with torch.no_grad():
-        n = model.means.shape[0]
-        rest = model.sh_rest.detach().float().cpu().transpose(1, 2).reshape(n, -1)      # channel-major
-        cols = [model.means.detach().float().cpu(), torch.zeros(n, 3), model.sh_dc.detach().float().cpu().reshape(n, 3),
-                rest, model.opacity_logits.detach().float().cpu().reshape(n, 1),
-                model.log_scales.detach().float().cpu(), model.quats.detach().float().cpu()]
+        n = means.shape[0]
+        f = lambda t: t.detach().float().cpu()  # noqa: E731
+        rest = f(sh_rest).transpose(1, 2).reshape(n, -1)                                   # channel-major
+        cols = [f(means), torch.zeros(n, 3), f(sh_dc).reshape(n, 3), rest, f(opacity_logits).reshape(n, 1),
+                f(log_scales).expand(n, 3), f(quats)]
         data = torch.cat(cols, 1).numpy().astype("<f4")
     names = gaussian_ply_fields(rest.shape[1])
     header = "ply\nformat binary_little_endian 1.0\nelement vertex %d\n" % n
@@ -46,10 +53,9 @@ def save_gaussian_ply(path: os.PathLike, model) -> Path:
     return Path(path)
 
 
-def load_gaussian_ply(path: os.PathLike):
-    """Read a 3DGS PLY -> :class:`~l3d_app.models.gaussians.GaussianModel` (SH padded to degree 3)."""
-    from l3d_app.models.gaussians import GaussianModel
-
+def load_gaussian_ply(path: os.PathLike) -> Dict[str, torch.Tensor]:
+    """Read a 3DGS PLY -> {means (N, 3), log_scales (N, 3), quats (N, 4), opacity_logits (N,),
+    sh_dc (N, 1, 3), sh_rest (N, 15, 3)} float32 (SH padded to degree 3)."""
     raw = Path(path).read_bytes()
     end = raw.find(b"end_header\n")
     if not raw.startswith(b"ply") or end < 0:
@@ -76,6 +82,6 @@ def load_gaussian_ply(path: os.PathLike):
     rest = torch.zeros(n, 15, 3)
     if per:
         rest[:, :per] = col(*rest_names).reshape(n, 3, per).transpose(1, 2)
-    return GaussianModel(col("x", "y", "z"), col("scale_0", "scale_1", "scale_2"),
-                         col("rot_0", "rot_1", "rot_2", "rot_3"), col("opacity")[:, 0],
-                         col("f_dc_0", "f_dc_1", "f_dc_2")[:, None, :], rest)
+    return {"means": col("x", "y", "z"), "log_scales": col("scale_0", "scale_1", "scale_2"),
+            "quats": col("rot_0", "rot_1", "rot_2", "rot_3"), "opacity_logits": col("opacity")[:, 0],
+            "sh_dc": col("f_dc_0", "f_dc_1", "f_dc_2")[:, None, :], "sh_rest": rest}

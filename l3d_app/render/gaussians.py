@@ -48,6 +48,7 @@ from l3d_app.render.gaussians_composite import (ALPHA_MAX, ALPHA_MIN, T_MIN, Com
                                                 composite_pairs, splat_pixel_pairs)
 
 LOW_PASS = 0.3
+COVERED_ALPHA = 1e-4   # below this accumulated opacity a pixel has no expected depth (reported as 0)
 __all__ = ["rasterize_gaussians", "project_gaussians", "quaternion_to_rotation", "ALPHA_MAX", "ALPHA_MIN", "T_MIN"]
 
 
@@ -147,7 +148,8 @@ def rasterize_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: to
 
     Args:
         means: (N, 3) centres, world units.
-        log_scales: (N, 3) log of the per-axis standard deviations (world units).
+        log_scales: (N, 3) log of the per-axis standard deviations (world units), or
+            (N, 1) for isotropic splats (one scale, repeated on the three axes).
         quats: (N, 4) rotations ``(w, x, y, z)``, any norm (zero -> identity).
         opacity_logits: (N,) or (N, 1); opacity = sigmoid(logit).
         sh_coeffs: (N, K, 3) spherical-harmonic colour coefficients, K >= (sh_degree+1)^2.
@@ -161,14 +163,17 @@ def rasterize_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: to
             plain autograd through the same forwards, the reference).
     Returns dict:
         color (B, H, W, 3) composited on the background; alpha (B, H, W) = 1 - final
-        transmittance; depth (B, H, W) alpha-weighted camera depth ``sum_i w_i z_i``
-        (divide by alpha for the expected depth of the covered part); means2d (B, N, 2)
+        transmittance (the accumulated opacity, the course's "mask"); depth (B, H, W)
+        alpha-weighted camera depth ``sum_i w_i z_i`` (the course's depth map);
+        expected_depth (B, H, W) = depth / alpha, the expected depth of the covered part
+        (0 where alpha <= ``COVERED_ALPHA``; differentiable); means2d (B, N, 2)
         pixel centres of the splats (``retain_grad`` set when differentiable: the
         screen-space gradient for densification); radii (B, N) pixels (0 = culled);
         visible (B, N) bool; n_pairs (B,) number of (splat, tile) overlaps.
     """
     dt = means.dtype
     N = means.shape[0]
+    log_scales = log_scales.expand(N, 3)
     cams = cams.to(device=means.device, dtype=dt)
     bg = torch.zeros(3, dtype=dt, device=means.device) if background is None else \
         torch.as_tensor(background, dtype=dt, device=means.device).reshape(3)
@@ -205,6 +210,10 @@ def rasterize_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: to
         alphas.append(a)
         depths.append(acc[..., 3])
         pairs.append(n_pairs)
-    return {"color": torch.stack(colors), "alpha": torch.stack(alphas), "depth": torch.stack(depths),
+    alpha, depth = torch.stack(alphas), torch.stack(depths)
+    covered = alpha > COVERED_ALPHA
+    safe = torch.where(covered, alpha, torch.ones_like(alpha))
+    expected = torch.where(covered, depth / safe, torch.zeros_like(depth))
+    return {"color": torch.stack(colors), "alpha": alpha, "depth": depth, "expected_depth": expected,
             "means2d": means2d, "radii": proj["radius"], "visible": proj["visible"],
             "n_pairs": torch.tensor(pairs)}

@@ -1,150 +1,153 @@
 """gs_train: 3D Gaussian splatting from posed images (built-in scene, truck, NeRF-synthetic).
 
-Initial splats: the truck's ``points/points_10000.npy`` when present, else ``n_init``
-points sampled uniformly in the data's scene box; their colours (``init_colors=views``)
-are the median of the training pixels they project to (the role of SfM point colours).
-Each step renders one random training view with
-:func:`~l3d_app.render.gaussians.rasterize_gaussians` on the data's background and
-minimises ``L1 + ssim_lambda * (1 - SSIM)`` with Adam (per-parameter learning rates as in
-3DGS, the means' rate times the scene extent and decayed exponentially). The SH degree
-rises by one every ``sh_every`` steps up to ``sh_degree``.
-:class:`~l3d_app.models.gaussians.DensityControl` runs in the shared loop's ``after_step``
-hook; its accumulators are checkpointed, so ``resume=true`` continues bitwise like an
-uninterrupted run (CPU). ``time_budget`` > 0 stops after that many seconds of training
-steps (clean SIGINT stop of the shared loop), as in train_nerf.
-Outputs: ``test_views.gif`` (prediction | ground truth per test view), ``progress.gif``
-(a test view over training, prediction over ground truth), ``point_cloud.ply`` (3DGS
-layout), ``metrics.json`` (psnr, ssim, n_gaussians, seconds, iters, history).
+Initial splats: the dataset's own points (``data.points``, e.g. the truck's
+``points_10000.npy``) when it carries them, else ``n_init`` points drawn uniformly in its
+scene box; colours (``init_colors``): ``views`` = median of the training pixels each point
+projects to, ``points`` = the dataset's ``point_colors``, ``grey``. Each step renders one
+random training view and minimises ``L1 + ssim_lambda (1 - SSIM)`` (+ the strategy's
+regulariser) with Adam (per-parameter rates as in 3DGS; the means' rate is scaled by the
+scene extent and decays exponentially, a LambdaLR the shared loop steps). The SH degree
+rises by one every ``sh_every`` steps up to ``sh_degree``. Densification is the
+``strategy=`` group (:mod:`l3d_app.strategies`), checkpointed with the model.
+Validation views are evaluated every ``eval_every`` steps (TensorBoard ``val/``, with a
+prediction | truth | error | depth picture); the test views once at the end.
+Outputs: ``test_views.gif``, ``progress.gif`` (a validation view over training),
+``point_cloud.ply`` (3DGS layout), ``metrics.json``.
 """
 
 from __future__ import annotations
 
-import os
-import signal
 import time
-from typing import Dict
 
-import numpy as np
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.gaussian_ply import save_gaussian_ply
 from l3d_app.metrics.image import psnr, ssim
-from l3d_app.models.gaussians import DensityControl, colors_from_views, init_from_points
-from l3d_app.registry import DATASETS, TASKS
+from l3d_app.models.gaussians import colors_from_views, init_from_points
+from l3d_app.registry import DATASETS, STRATEGIES, TASKS
 from l3d_app.render.gaussians import rasterize_gaussians
+from l3d_app.render.gaussians_coverage import shrink_to_coverage
+from l3d_app.render.gaussians_panels import colorize_depth, depth_range, error_map, side_by_side
 from l3d_app.runtime.media import save_gif
-from l3d_app.runtime.paths import resolve_path
-from l3d_app.runtime.training import Trainable, train
+from l3d_app.runtime.random import rand, randint
+from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import require_positive
 
 
-def _initial_points(cfg, data, generator):
-    root = cfg.data.get("root", None)
-    if root is not None and str(cfg.data.name) == "truck":
-        f = resolve_path(str(root)) / "points" / "points_10000.npy"
-        if f.is_file():
-            return torch.from_numpy(np.load(f).astype(np.float32))
-    lo, hi = data.scene_box[0].cpu(), data.scene_box[1].cpu()
-    return lo + (hi - lo) * torch.rand(int(cfg.n_init), 3, generator=torch.Generator().manual_seed(int(cfg.seed)))
+def _initial_model(cfg, raw, data, generator):
+    points, colors = getattr(raw, "points", None), None
+    if points is None:
+        lo, hi = data.scene_box[0].cpu(), data.scene_box[1].cpu()
+        points = lo + (hi - lo) * rand((int(cfg.n_init), 3), generator)
+    points = points.float().to(data.images.device)
+    mode = str(cfg.init_colors)
+    if mode == "views":
+        colors = colors_from_views(points, data.images[data.train], data.cameras[data.train])
+    elif mode == "points":
+        colors = getattr(raw, "point_colors", None)
+        if colors is None:
+            raise UserError(f"init_colors=points: data '{cfg.data.name}' has no point colours (use views or grey)")
+    elif mode != "grey":
+        raise UserError(f"init_colors must be views, points or grey, got {mode!r}")
+    model = init_from_points(points, colors, opacity=float(cfg.init_opacity), isotropic=bool(cfg.isotropic),
+                             scale_factor=float(cfg.init_scale)).to(points.device)
+    if float(cfg.init_max_coverage) > 0:          # bounded start-up cost (render/gaussians_coverage.py)
+        views = data.train[torch.linspace(0, len(data.train) - 1, min(16, len(data.train))).long()]
+        model.log_scales.data = shrink_to_coverage(model.means, model.log_scales, model.quats,
+                                                   torch.sigmoid(model.opacity_logits), data.cameras[views],
+                                                   float(cfg.init_max_coverage))
+    return model
 
 
 @TASKS.register("gs_train")
 def gs_train(cfg, ctx) -> dict:
-    """Train Gaussians, evaluate PSNR/SSIM on the test views, write gifs / ply / metrics."""
-    require_positive(cfg, "iters", "eval_every")
-    data = DATASETS.build(cfg.data).to(ctx.device)
-    points = _initial_points(cfg, data, ctx.generator).to(ctx.device)
-    colors = colors_from_views(points, data.images[data.train], data.cameras[data.train]) \
-        if str(cfg.init_colors) == "views" else None
-    model = init_from_points(points, colors, opacity=float(cfg.init_opacity)).to(ctx.device)
+    """Train Gaussians; val figures during training, test figures once; gifs / ply / metrics."""
+    require_positive(cfg, "iters", "eval_every", "sh_every", "lr_decay_steps")
+    raw = DATASETS.build(cfg.data)
+    if len(raw.val) == 0:
+        raise UserError(f"gs_train needs validation views and data '{cfg.data.name}' has none")
+    data = raw.to(ctx.device)
+    model = _initial_model(cfg, raw, data, ctx.generator).to(ctx.device)
     centres = data.cameras.centers()
-    extent = 1.1 * float((centres - centres.mean(0)).norm(dim=-1).max())
+    extent = float(cfg.extent_margin) * float((centres - centres.mean(0)).norm(dim=-1).max())
     lr = cfg.lr
-    groups = [{"params": [model.means], "lr": float(lr.means) * extent, "name": "means"},
-              {"params": [model.log_scales], "lr": float(lr.scales), "name": "scales"},
-              {"params": [model.quats], "lr": float(lr.quats), "name": "quats"},
-              {"params": [model.opacity_logits], "lr": float(lr.opacity), "name": "opacity"},
-              {"params": [model.sh_dc], "lr": float(lr.sh_dc), "name": "sh_dc"},
-              {"params": [model.sh_rest], "lr": float(lr.sh_dc) / 20.0, "name": "sh_rest"}]
-    opt = torch.optim.Adam(groups, eps=1e-15)
-    dc = DensityControl(extent, grad_threshold=float(cfg.densify.grad_threshold),
-                        percent_dense=float(cfg.densify.percent_dense), min_opacity=float(cfg.densify.min_opacity),
-                        max_screen_size=float(cfg.densify.max_screen_size),
-                        max_world_scale=float(cfg.densify.max_world_scale), max_gaussians=int(cfg.densify.max_gaussians))
-    trainable = Trainable({"gaussians": model}, opt, extra={"density": dc})  # accumulators resume too
-    bg = data.background
-    tr = data.train.to(ctx.device)
+    groups = [("means", model.means, float(lr.means) * extent), ("scales", model.log_scales, float(lr.scales)),
+              ("quats", model.quats, float(lr.quats)), ("opacity", model.opacity_logits, float(lr.opacity)),
+              ("sh_dc", model.sh_dc, float(lr.sh_dc)), ("sh_rest", model.sh_rest, float(lr.sh_rest))]
+    opt = torch.optim.Adam([{"params": [p], "lr": r, "name": n} for n, p, r in groups], eps=float(cfg.adam_eps))
+    decay, steps = float(lr.means_final) / float(lr.means), int(cfg.lr_decay_steps)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, [lambda s: decay ** min(1.0, s / steps)] + [lambda s: 1.0] * 5)
+    strategy = STRATEGIES.build(cfg.strategy)
+    strategy.initialize(model, opt, extent)
+    trainable = Trainable({"gaussians": model}, opt, extra={"strategy": strategy}, schedulers=[sched])
     H, W = data.image_size
-    kw = dict(tile_size=int(cfg.tile_size))
-    iters, budget = int(cfg.iters), float(cfg.get("time_budget", 0) or 0)
-    stats = {"train_seconds": 0.0, "out": None, "steps": 0}
-    lam = float(cfg.ssim_lambda)
-    decay_steps = max(1, int(cfg.lr_decay_steps))
+    tr, lam, info, step_times = data.train, float(cfg.ssim_lambda), {"width": W, "height": H}, []
 
     def degree(step: int) -> int:
-        return min(int(cfg.sh_degree), step // max(1, int(cfg.sh_every)))
+        return min(int(cfg.sh_degree), step // int(cfg.sh_every))
 
-    def render(cams, deg):
-        return rasterize_gaussians(model.means, model.log_scales, model.quats, model.opacity_logits, model.sh,
-                                   deg, cams, bg, **kw)
+    def render(i: int, deg: int):
+        return rasterize_gaussians(model.means, model.log_scales3, model.quats, model.opacity_logits, model.sh,
+                                   deg, data.cameras[i], data.background, tile_size=int(cfg.tile_size))
 
-    def step_fn(step: int) -> Dict[str, torch.Tensor]:
-        stats["_t0"] = time.perf_counter()
-        frac = min(1.0, step / decay_steps)
-        opt.param_groups[0]["lr"] = float(lr.means) * extent * (float(lr.means_final) / float(lr.means)) ** frac
-        i = int(tr[int(torch.randint(0, len(tr), (1,), generator=ctx.generator, device=ctx.generator.device))])
-        out = render(data.cameras[i], degree(step))
+    def step_fn(step: int):
+        info["t0"], info["c0"] = time.perf_counter(), time.process_time()
+        i = int(tr[int(randint(0, len(tr), (1,), ctx.generator))])
+        out = render(i, degree(step))
         pred, target = out["color"][0], data.images[i]
         l1 = (pred - target).abs().mean()
         loss = l1 + lam * (1 - ssim(pred, target)) if lam > 0 else l1
-        stats["out"] = out
-        return {"loss": loss, "l1": l1.detach(), "n_gaussians": torch.tensor(float(model.num)),
-                "sh_degree": torch.tensor(float(degree(step)))}
+        reg = strategy.regularization(model)
+        loss = loss if reg is None else loss + reg
+        info.update(means2d=out["means2d"], radii=out["radii"])
+        strategy.step_pre_backward(model, opt, step, info)
+        return {"loss": loss, "l1": l1.detach(), "n_gaussians": torch.tensor(float(model.num))}
 
     def after_step(step: int) -> None:
-        out = stats.pop("out")
-        done = step + 1
-        if done <= int(cfg.densify.until) and out["means2d"].grad is not None:
-            dc.accumulate(out["means2d"].grad, out["radii"].detach(), W, H)
-            if done >= int(cfg.densify.start) and done % int(cfg.densify.every) == 0:
-                r = dc.densify_and_prune(model, opt, generator=None,
-                                         prune_screen=done > int(cfg.densify.opacity_reset_every))
-                ctx.logger.log_scalars({"densify/n_gaussians": r["n"], "densify/cloned": r["cloned"],
-                                        "densify/split": r["split"], "densify/pruned": r["pruned"]}, done)
-            if int(cfg.densify.opacity_reset_every) > 0 and done % int(cfg.densify.opacity_reset_every) == 0:
-                dc.reset_opacity(model, opt)
-        stats["train_seconds"] += time.perf_counter() - stats.pop("_t0", time.perf_counter())
-        stats["steps"] += 1
-        if budget > 0 and stats["train_seconds"] >= budget:
-            os.kill(os.getpid(), signal.SIGINT)
+        logs = strategy.step_post_backward(model, opt, step, info, ctx.generator)
+        if logs:
+            ctx.logger.log_scalars({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
+        step_times.append((time.perf_counter() - info["t0"], time.process_time() - info["c0"]))
 
-    test = data.test.to(ctx.device)
     prog_frames = []
+    lo_hi = depth_range(data.cameras[int(data.val[0])].centers()[0], data.scene_box)
 
-    def render_test(deg) -> torch.Tensor:
-        return torch.cat([render(data.cameras[int(i)], deg)["color"] for i in test]).clamp(0, 1)
+    def evaluate(views, deg):
+        outs = [render(int(i), deg) for i in views]
+        pred = torch.cat([o["color"] for o in outs]).clamp(0, 1)
+        target = data.images[views.to(ctx.device)]
+        depth = colorize_depth(outs[0]["expected_depth"][0], *lo_hi, mask=outs[0]["alpha"][0] > 0.5)
+        panel = side_by_side([pred[0], target[0], error_map(pred[0], target[0]), depth])
+        return pred, target, panel, {"psnr": float(psnr(pred, target)), "ssim": float(ssim(pred, target))}
 
-    def eval_fn(step: int) -> Dict[str, float]:
-        pred = render_test(degree(step))
-        target = data.images[test]
-        prog_frames.append(torch.cat([pred[0], target[0]], 0).cpu())
-        return {"psnr": float(psnr(pred, target)), "ssim": float(ssim(pred, target)), "n_gaussians": model.num,
-                "train_seconds": stats["train_seconds"]}
+    def eval_fn(step: int):
+        pred, _, panel, m = evaluate(data.val, degree(step))
+        prog_frames.append(panel)
+        return {**m, "n_gaussians": model.num, "images": {"pred_truth_error_depth": panel}}
 
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step_fn, iters, eval_fn=eval_fn, eval_every=int(cfg.eval_every),
+        result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
                        checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="gs_train",
-                       after_step=after_step, log_every=int(cfg.log_every))
+                       after_step=after_step, log_every=int(cfg.log_every), time_budget=float(cfg.time_budget),
+                       reserve=float(cfg.reserve))
     with torch.no_grad():
-        pred = render_test(degree(result.step))
-        target = data.images[test]
-        metrics = {"psnr": round(float(psnr(pred, target)), 4), "ssim": round(float(ssim(pred, target)), 4)}
-        save_gif(ctx.path("test_views.gif"), torch.cat([pred, target], 2), fps=float(cfg.fps) / 4)
-        if prog_frames:
-            save_gif(ctx.path("progress.gif"), torch.stack(prog_frames), fps=float(cfg.fps))
-    save_gaussian_ply(ctx.path("point_cloud.ply"), model)
-    metrics.update({"n_gaussians": model.num, "iters": result.step,
-                    "train_seconds": round(stats["train_seconds"], 3),
-                    "steps_per_second": round(stats["steps"] / max(stats["train_seconds"], 1e-9), 3),
-                    "history": result.history_rows()})
-    return metrics
+        pred, target, panel, test = evaluate(data.test, degree(result.step))
+    test = {k: round(v, 4) for k, v in test.items()}
+    log_test(ctx, test, result.step, images={"pred_truth_error_depth": panel})
+    save_gif(ctx.path("test_views.gif"), torch.cat([pred, target], 2), fps=float(cfg.fps) / 4)
+    if prog_frames:
+        save_gif(ctx.path("progress.gif"), torch.stack(prog_frames), fps=float(cfg.fps))
+    save_gaussian_ply(ctx.path("point_cloud.ply"), **model.tensors())
+    return {**test, **result.val_metrics(), **result.timing(), "n_gaussians": model.num,
+            **_step_cost(step_times), "history": result.history_rows()}
+
+
+def _step_cost(times, first: int = 100) -> dict:
+    """Mean wall and CPU (process) seconds per step over the first ``first`` steps and the rest
+    (CPU time is the figure to compare on a shared machine, with threads=1)."""
+    out = {}
+    for name, part in (("first_100", times[:first]), ("after_100", times[first:])):
+        out[f"seconds_per_step_{name}"] = round(sum(t[0] for t in part) / max(1, len(part)), 5)
+        out[f"cpu_seconds_per_step_{name}"] = round(sum(t[1] for t in part) / max(1, len(part)), 5)
+    return out
