@@ -66,7 +66,7 @@ def one_line(err: BaseException) -> str:
 
 def load_registries() -> None:
     """Import every package that registers something, so every registry is complete."""
-    from l3d_app import data, diffusion, geometry, losses, models, render, tasks  # noqa: F401
+    from l3d_app import data, diffusion, geometry, losses, models, render, strategies, tasks  # noqa: F401
 
 
 class RunInterrupted(Exception):
