@@ -1,0 +1,173 @@
+"""Benchmark on scenes we did not make: the defaults of train_nerf, gs_train and volsdf (and
+the course NeRF at a fixed short budget as the in-run baseline) on every Mitsuba scene of
+``bench/make_scenes.py``. Run by hand, never in tests:
+
+    python bench/make_scenes.py                         # once: renders the scenes (cached)
+    python bench/bench_scenes.py [--scenes dev thin ...] [--methods train_nerf gs_train volsdf nerf_baseline]
+                                 [--threads 2] [--baseline-budget 120] [--reuse] [--doc docs/benchmark_scenes.md]
+
+Each run is ``python main.py task=<method> data=blender data.root=<scene>`` with the task's
+defaults (``train_nerf`` adds ``extract_mesh=true`` so its surface can be scored;
+``nerf_baseline`` gets ``time_budget=--baseline-budget``). Reported per run: test PSNR / SSIM
+on ALL test views (the task's own ``psnr``/``ssim``, read once at its end), wall seconds of
+the whole task, model size (parameters or Gaussians), and for runs that leave a mesh
+(``*.ply`` other than Gaussian point clouds, or ``mesh.obj``): chamfer on the whole true
+surface and on the part the training cameras observe (% of the true bounding-box diagonal),
+F1 at 0.02 and 0.05 (observed), and the phantom area: the share of the mesh's area farther
+than 0.05 from the true surface (= 1 - precision at 0.05, from area-uniform samples).
+
+The development scene (``dev``) is the only scene any default may be tuned on; the others
+are held out (``scene.json`` says which). Writes ``outputs/bench_scenes/results.json``, the
+markdown table and a plot of PSNR against seconds (``--doc``, default
+``docs/benchmark_scenes.md`` + ``.png``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Dict, List, Optional
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+DEFAULT_SCENES = Path(os.environ.get("L3D_BENCH_SCENES", REPO / "outputs" / ".cache" / "bench_scenes"))
+METHODS = ("train_nerf", "gs_train", "volsdf", "nerf_baseline")
+EXTRA = {"train_nerf": ["extract_mesh=true"]}
+TARGETS = {"train_nerf": "psnr >= 32", "gs_train": "psnr >= 33",
+           "volsdf": "chamfer <= 1% diag, F1@0.02 obs >= 0.8, psnr >= 28, phantom < 5%"}
+
+
+def run_method(method: str, scene: Path, out: Path, threads: int, baseline_budget: float,
+               reuse: bool, overrides: List[str] = ()) -> Optional[dict]:
+    """Run one task on one scene through main.py; returns its metrics.json (or None on failure)."""
+    run_dir = out / scene.name / method
+    if reuse and (run_dir / "metrics.json").is_file():
+        return json.loads((run_dir / "metrics.json").read_text())
+    cmd = [sys.executable, str(REPO / "main.py"), f"task={method}", "data=blender", f"data.root={scene}",
+           f"threads={threads}", f"hydra.run.dir={run_dir}", *EXTRA.get(method, []), *overrides]
+    if method == "nerf_baseline":
+        cmd.append(f"time_budget={baseline_budget}")
+    print(" ".join(cmd), flush=True)
+    t0 = time.perf_counter()
+    rc = subprocess.run(cmd, cwd=REPO, env={**os.environ, "L3D_NO_PROGRESS": "1"}).returncode
+    if rc != 0 or not (run_dir / "metrics.json").is_file():
+        print(f"  {method} on {scene.name} failed (exit {rc})", flush=True)
+        return None
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    metrics.setdefault("wall_seconds", round(time.perf_counter() - t0, 1))
+    return metrics
+
+
+def find_mesh(run_dir: Path) -> Optional[Path]:
+    """The surface a run extracted (not a Gaussian point cloud)."""
+    for pattern in ("mesh*.ply", "*.ply", "mesh*.obj", "*.obj"):
+        for p in sorted(run_dir.glob(pattern)):
+            if p.name != "point_cloud.ply":
+                return p
+    return None
+
+
+def mesh_scores(mesh_path: Path, scene: Path) -> Dict[str, float]:
+    """Whole / observed chamfer (% of diagonal), F1@0.02 and 0.05, phantom share of area."""
+    from l3d_app.data.nerf_formats import blender
+    from l3d_app.geometry.mesh_io import load_mesh
+    from l3d_app.metrics.surface_scores import surface_scores
+
+    truth = load_mesh(str(scene / "mesh.ply"))
+    pred = load_mesh(str(mesh_path))
+    data = blender(root=str(scene), background="white")
+    cams = data.cameras[data.train]
+    s05 = surface_scores(pred, truth, cameras=cams, threshold=0.05)
+    s02 = surface_scores(pred, truth, cameras=cams, threshold=0.02)
+    return {"chamfer_pct": 100 * s05["chamfer_rel_diag"], "chamfer_obs_pct": 100 * s05["chamfer_observed_rel_diag"],
+            "f1_02_obs": s02["f1_observed"], "f1_05_obs": s05["f1_observed"], "f1_05": s05["f1"],
+            "phantom_pct": 100 * (1.0 - s05["precision"]), "observed_fraction": s05["observed_fraction"]}
+
+
+def fmt(v, spec: str) -> str:
+    return "" if v is None else format(v, spec)
+
+
+def table(rows: List[dict]) -> str:
+    head = ("| scene | role | method | test PSNR | test SSIM | seconds | size | chamfer % diag (whole / observed) "
+            "| F1@0.02 obs | F1@0.05 obs | phantom % |\n|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    lines = [head]
+    for r in rows:
+        size = r.get("n_gaussians") or r.get("n_params")
+        cham = "" if r.get("chamfer_pct") is None else f"{r['chamfer_pct']:.2f} / {r['chamfer_obs_pct']:.2f}"
+        lines.append(f"| {r['scene']} | {r['role']} | {r['method']} | {fmt(r.get('psnr'), '.2f')} | "
+                     f"{fmt(r.get('ssim'), '.3f')} | {fmt(r.get('seconds'), '.0f')} | {size or ''} | {cham} | "
+                     f"{fmt(r.get('f1_02_obs'), '.3f')} | {fmt(r.get('f1_05_obs'), '.3f')} | {fmt(r.get('phantom_pct'), '.1f')} |")
+    return "\n".join(lines)
+
+
+def plot(rows: List[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for method in METHODS:
+        pts = [(r["seconds"], r["psnr"]) for r in rows if r["method"] == method and r.get("psnr") is not None]
+        if pts:
+            ax.scatter(*zip(*pts), label=method)
+    ax.set_xlabel("wall seconds (whole task)")
+    ax.set_ylabel("test PSNR (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--root", type=Path, default=DEFAULT_SCENES, help="folder of make_scenes.py output")
+    ap.add_argument("--scenes", nargs="*", default=None)
+    ap.add_argument("--methods", nargs="*", default=list(METHODS))
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--baseline-budget", type=float, default=120.0)
+    ap.add_argument("--out", type=Path, default=REPO / "outputs" / "bench_scenes")
+    ap.add_argument("--doc", type=Path, default=REPO / "docs" / "benchmark_scenes.md")
+    ap.add_argument("--reuse", action="store_true", help="reuse finished runs in --out")
+    ap.add_argument("--override", nargs="*", default=[], help="extra overrides for every run (smoke tests only: "
+                    "the benchmark's figures are the defaults)")
+    args = ap.parse_args()
+    scenes = [args.root / s for s in args.scenes] if args.scenes else sorted(
+        p for p in args.root.iterdir() if (p / "scene.json").is_file())
+    if not scenes:
+        raise SystemExit(f"no scenes under {args.root}: run python bench/make_scenes.py first")
+    rows = []
+    for scene in scenes:
+        info = json.loads((scene / "scene.json").read_text())
+        for method in args.methods:
+            m = run_method(method, scene, args.out, args.threads, args.baseline_budget, args.reuse, args.override)
+            row = {"scene": scene.name, "role": info["role"], "method": method}
+            if m is not None:
+                row.update({k: m.get(k) for k in ("psnr", "ssim", "seconds", "n_params", "n_gaussians", "iters")})
+                mesh = find_mesh(args.out / scene.name / method)
+                if mesh is not None:
+                    row.update(mesh_scores(mesh, scene))
+            rows.append(row)
+            print(table([row]).splitlines()[-1], flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "results.json").write_text(json.dumps(rows, indent=1))
+    load = os.getloadavg()
+    cmd = "python bench/bench_scenes.py " + " ".join(sys.argv[1:])
+    doc = (f"# Benchmark on scenes we did not make (Mitsuba 3)\n\n`{cmd.strip()}`\n\n"
+           f"Machine: {os.cpu_count()} cores, load average at the end {load[0]:.1f}. Targets on held-out scenes: "
+           + "; ".join(f"{k}: {v}" for k, v in TARGETS.items()) + ".\n\n" + table(rows) + "\n")
+    args.doc.parent.mkdir(parents=True, exist_ok=True)
+    args.doc.write_text(doc)
+    plot(rows, args.doc.with_suffix(".png"))
+    print(table(rows))
+
+
+if __name__ == "__main__":
+    main()
