@@ -43,7 +43,7 @@ def _bf16_net_output(values: torch.Tensor) -> torch.Tensor:
 
 
 def _rel_err(x: torch.Tensor, ref: torch.Tensor) -> float:
-    return float((x.double() - ref).abs().max() / ref.abs().max().clamp_min(1e-300))
+    return float((x.detach().double() - ref).abs().max() / ref.abs().max().clamp_min(1e-300))
 
 
 # --------------------------------------------------------------------------- transmittance
@@ -222,7 +222,7 @@ def test_sdf_grid_field_gradient_and_eikonal_under_autocast():
     grads = torch.cat([p.grad.reshape(-1) for p in field.parameters() if p.grad is not None])
     ref_grads = torch.cat([p.grad.reshape(-1) for p in ref_field.parameters() if p.grad is not None])
     assert torch.isfinite(grads).all()
-    assert float((f.detach().double() - f64).abs().max()) < 2e-2          # world units, |f| <= ~1
+    assert float((f.detach().double() - f64).abs().max()) < 2e-2         # world units, |f| <= ~1
     assert _rel_err(g, g64) < 3e-2
     assert _rel_err(grads, ref_grads) < 5e-2
 
@@ -365,6 +365,6 @@ def test_gaussians_near_singular_huge_and_zero_quaternion_under_autocast(precisi
     col, p = _render_gauss(params, cam, bg, precision)
     ref, ref_grads = _ref_grads(params, cam, bg)
     assert torch.isfinite(col).all() and all(torch.isfinite(x.grad).all() for x in p)
-    assert float((col.double() - ref).abs().max()) < tol_value
+    assert float((col.detach().double() - ref).abs().max()) < tol_value
     for name, x, r in zip(("means", "log_scales", "quats", "logits", "sh_dc"), p, ref_grads):
         assert _rel_err(x.grad, r) < tol_grad, name

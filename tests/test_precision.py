@@ -114,3 +114,7 @@ def test_maybe_compile_reraises_errors_after_a_successful_call(monkeypatch):
     assert g(2) == 4
     with pytest.raises(ValueError, match="negative"):
         g(-1)
+
+
+def test_compile_available_matches_this_torch():
+    assert prec.compile_available() == hasattr(torch, "compile")

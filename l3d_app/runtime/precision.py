@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import importlib.util
 import warnings
 from typing import Any, Callable, ContextManager, Union
 
@@ -52,11 +53,10 @@ def compile_available() -> bool:
     """True when this torch has ``torch.compile`` (Python versions / builds without dynamo lack it)."""
     if not hasattr(torch, "compile"):
         return False
-    try:
-        importlib.import_module("torch._dynamo")
-    except Exception:  # pragma: no cover - depends on the build
+    try:   # find, do not import (importing dynamo costs seconds)
+        return importlib.util.find_spec("torch._dynamo") is not None
+    except (ImportError, ValueError):  # pragma: no cover - depends on the build
         return False
-    return True
 
 
 class _CompiledOrEager:
