@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import json
 import math
 import os
 import statistics
@@ -206,7 +207,6 @@ def bench_path(name: str, args, variants: List[str]) -> List[dict]:
     m64 = copy.deepcopy(module).double()
     in64 = {k: v.double() for k, v in inputs.items()}
     _, _, ref_out, ref_grads = run_once(lambda **kw: step(m64, **kw), m64, in64)
-    del m64
     fns = {v: make_variant(module, step, *parse_variant(v)) for v in variants}
     rows = {v: {"variant": v, "wall": [], "cpu": []} for v in variants}
     for v in variants:                                  # warm-up (and compilation): excluded
@@ -270,6 +270,10 @@ def write_markdown(path: Path, rows: List[dict], args, load_before: str, load_af
             f"Load before: `{load_before}`  \nLoad after: `{load_after}`\n\n"
             + "\n".join(f"- {p}: {describe(p, args)}" for p in args.paths.split(",")) + "\n\n" + table + "\n")
     path.parent.mkdir(parents=True, exist_ok=True)
+    begin, end = "<!-- bench:begin -->", "<!-- bench:end -->"
+    old = path.read_text() if path.exists() else ""
+    if begin in old and end in old:                     # a page with prose around the table: replace the table
+        text = old[:old.index(begin) + len(begin)] + "\n" + text + old[old.index(end):]
     path.write_text(text)
 
 
@@ -288,6 +292,7 @@ def main(argv=None) -> None:
     p.add_argument("--sdf-eik", type=int, default=1024)
     p.add_argument("--gaussians", type=int, default=20000)
     p.add_argument("--size", type=int, default=128)
+    p.add_argument("--json", default="", help="also save the rows as JSON after each path")
     p.add_argument("--out", default="", help="markdown file for the table (e.g. docs/cpu_frontier_table.md)")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -298,8 +303,20 @@ def main(argv=None) -> None:
     for name in args.paths.split(","):
         print(f"{name}: {describe(name, args)}", flush=True)
         rows += bench_path(name, args, variants)
+        _print_rows(rows)
+        if args.json:                                   # saved path by path: a long run keeps what it has
+            Path(args.json).write_text(json.dumps({"rows": rows, "load_before": load_before,
+                                                   "load_now": _uptime(), "threads": args.threads}, indent=1))
     load_after = _uptime()
     print(f"{load_after}")
+    _print_rows(rows)
+    if args.out:
+        cmd = "python bench/bench_cpu_frontier.py " + " ".join(sys.argv[1:] if argv is None else argv)
+        write_markdown(REPO / args.out, rows, args, load_before, load_after, time.perf_counter() - t0, cmd)
+        print(f"wrote {args.out}")
+
+
+def _print_rows(rows: List[dict]) -> None:
     hdr = f"{'path':6s} {'variant':14s} {'wall med':>9s} {'min':>7s} {'max':>7s} {'cpu med':>8s} {'x':>5s} " \
           f"{'first':>6s} {'out max':>9s} {'out mean':>9s} {'g relmax':>9s} {'g relmean':>9s}"
     print(hdr)
@@ -307,11 +324,7 @@ def main(argv=None) -> None:
         print(f"{r['path']:6s} {r['variant']:14s} {r['wall_median']:9.3f} {r['wall_min']:7.3f} {r['wall_max']:7.3f} "
               f"{r['cpu_median']:8.3f} {r['speedup_cpu']:5.2f} {r['first_call_s']:6.1f} {r['out_max']:9.2e} "
               f"{r['out_mean']:9.2e} {r['grad_relmax']:9.2e} {r['grad_relmean']:9.2e}"
-              + ("" if r["finite"] else " NON-FINITE") + (" FELL-BACK" if r.get("fell_back") else ""))
-    if args.out:
-        cmd = "python bench/bench_cpu_frontier.py " + " ".join(sys.argv[1:] if argv is None else argv)
-        write_markdown(REPO / args.out, rows, args, load_before, load_after, time.perf_counter() - t0, cmd)
-        print(f"wrote {args.out}")
+              + ("" if r["finite"] else " NON-FINITE") + (" FELL-BACK" if r.get("fell_back") else ""), flush=True)
 
 
 if __name__ == "__main__":

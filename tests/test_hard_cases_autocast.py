@@ -15,7 +15,6 @@ function's own error, not the rounding of its inputs), at a bf16 tolerance (unit
 accurate in bf16 are ``xfail(strict=True)`` with the measured error in the reason.
 """
 
-import math
 
 import pytest
 import torch

@@ -16,7 +16,6 @@ hot paths gain from bf16 or compile, and what error they cost.
 from __future__ import annotations
 
 import contextlib
-import importlib
 import importlib.util
 import warnings
 from typing import Any, Callable, ContextManager, Union
@@ -39,7 +38,7 @@ def autocast(precision: str = "fp32", device: Union[str, torch.device, None] = "
     """A context manager for ``precision`` on ``device`` (``"cpu"``, ``"cuda"``, a
     ``torch.device``, or None for CPU).
 
-    ``"fp32"``: does nothing (also turns no enclosing autocast off). ``"bf16"``:
+    ``"fp32"``: does nothing (an enclosing autocast stays in force). ``"bf16"``:
     ``torch.autocast(device.type, dtype=torch.bfloat16)``. Anything else: ValueError.
     """
     check_precision(precision)
