@@ -217,9 +217,13 @@ def bench_path(name: str, args, variants: List[str]) -> List[dict]:
                 rows[v].update(accuracy(out, grads, ref_out, ref_grads))
                 rows[v]["fell_back"] = bool(getattr(fns[v], "failed", False))
         print(f"  {name}/{v}: warm-up done, first call {rows[v]['first_call_s']:.2f} s", flush=True)
+    g = torch.Generator().manual_seed(123)
     for _ in range(args.repeats):                       # round-robin
+        batch = inputs
+        if args.vary_rays and name == "nerf":           # a different ray count each repeat (as occupancy skipping gives)
+            batch = _fewer_rays(inputs, int(torch.randint(args.nerf_rays // 2, args.nerf_rays + 1, (1,), generator=g)))
         for v in variants:
-            wall, cpu, _, _ = run_once(fns[v], module, inputs)
+            wall, cpu, _, _ = run_once(fns[v], module, batch)
             rows[v]["wall"].append(wall)
             rows[v]["cpu"].append(cpu)
     out = []
@@ -234,6 +238,12 @@ def bench_path(name: str, args, variants: List[str]) -> List[dict]:
     for r in out:
         r["speedup_cpu"] = base / r["cpu_median"]
     return out
+
+
+def _fewer_rays(inputs: Dict[str, torch.Tensor], r: int) -> Dict[str, torch.Tensor]:
+    """The nerf path's inputs restricted to the first r rays."""
+    S = inputs["t"].shape[1]
+    return {"pts": inputs["pts"][: r * S], "t": inputs["t"][:r], "target": inputs["target"][:r]}
 
 
 def _uptime() -> str:
@@ -292,6 +302,8 @@ def main(argv=None) -> None:
     p.add_argument("--sdf-eik", type=int, default=1024)
     p.add_argument("--gaussians", type=int, default=20000)
     p.add_argument("--size", type=int, default=128)
+    p.add_argument("--vary-rays", action="store_true",
+                   help="nerf: each timed repeat uses a random ray count in [rays/2, rays] (recompilation cost)")
     p.add_argument("--json", default="", help="also save the rows as JSON after each path")
     p.add_argument("--out", default="", help="markdown file for the table (e.g. docs/cpu_frontier_table.md)")
     args = p.parse_args(argv)
