@@ -24,7 +24,9 @@ training (at their near-zero initialisation, bf16's error would look smaller tha
 Variants: ``fp32`` (eager), ``bf16`` (``torch.autocast("cpu", dtype=torch.bfloat16)`` around
 the forward and loss, :func:`l3d_app.runtime.precision.autocast`), ``compile``
 (``torch.compile`` of the forward + loss; the backward is compiled by AOTAutograd), and
-``compile+bf16``; ``--autotune`` adds the same two with ``mode="max-autotune-no-cudagraphs"``.
+``compile+bf16``; ``--autotune`` adds the same two with ``mode="max-autotune-no-cudagraphs"``;
+``compile-dyn`` compiles with ``dynamic=True`` (one kernel for every point count; with
+``--vary-rays`` the nerf repeats use a random ray count each, as occupancy skipping gives).
 All variants of one path run in the same process on the same module and inputs, ROUND-ROBIN
 (repeat r of every variant before repeat r + 1 of any), so the load of the shared machine falls
 on all of them alike; the first ``--warmup`` calls of each variant (compilation included) are
@@ -158,25 +160,29 @@ PATHS = {"nerf": nerf_path, "sdf": sdf_path, "gauss": gauss_path}
 
 
 # ---------------------------------------------------------------------------------- variants
-def make_variant(module: torch.nn.Module, step: Callable, precision: str, compile_mode) -> Callable:
-    """A callable ``(**inputs) -> (loss, output)`` running ``step`` under ``precision``, compiled or not."""
+def make_variant(module: torch.nn.Module, step: Callable, precision: str, compile_kw) -> Callable:
+    """A callable ``(**inputs) -> (loss, output)`` running ``step`` under ``precision``, compiled
+    with ``torch.compile(**compile_kw)`` unless ``compile_kw`` is None."""
 
     def forward(**inputs):
         with autocast(precision, "cpu"):
             return step(module, **inputs)
 
-    if compile_mode is None:
+    if compile_kw is None:
         return forward
-    kw = {} if compile_mode == "default" else {"mode": compile_mode}
-    return maybe_compile(forward, True, **kw)
+    return maybe_compile(forward, True, **compile_kw)
 
 
 def parse_variant(name: str):
-    """``fp32`` | ``bf16`` | ``compile[+bf16]`` | ``autotune[+bf16]`` -> (precision, compile mode or None)."""
+    """``fp32`` | ``bf16`` | ``compile[+bf16]`` | ``compile-dyn[+bf16]`` (``dynamic=True``) |
+    ``autotune[+bf16]`` -> (precision, torch.compile keyword arguments or None)."""
     precision = "bf16" if name.endswith("+bf16") or name == "bf16" else "fp32"
     head = name.split("+")[0]
-    mode = {"fp32": None, "bf16": None, "compile": "default", "autotune": "max-autotune-no-cudagraphs"}[head]
-    return precision, mode
+    kinds = {"fp32": None, "bf16": None, "compile": {}, "compile-dyn": {"dynamic": True},
+             "autotune": {"mode": "max-autotune-no-cudagraphs"}}
+    if head not in kinds:
+        raise SystemExit(f"unknown variant {name!r}; known: {', '.join(kinds)} (each optionally +bf16)")
+    return precision, kinds[head]
 
 
 def _grads(module: torch.nn.Module) -> torch.Tensor:

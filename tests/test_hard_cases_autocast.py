@@ -213,6 +213,7 @@ def test_sdf_grid_field_gradient_and_eikonal_under_autocast():
     ref_field.load_state_dict(field.state_dict())
     f64, feat64, g64 = ref_field.sdf_features_gradient(pts.double())
     eikonal_loss(g64).backward()
+    f64, g64 = f64.detach(), g64.detach()
     with autocast("bf16", "cpu"):
         f, feat, g = field.sdf_features_gradient(pts)
         loss = eikonal_loss(g.float())
