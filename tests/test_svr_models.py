@@ -8,7 +8,7 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.geometry.primitives import icosphere
-from l3d_app.geometry.rgbd import point_mesh_distance
+from l3d_app.geometry.point_mesh_distance import point_mesh_distance
 from l3d_app.losses.mesh_regularizers import laplacian_smoothing
 from l3d_app.models.svr_decoders import sample_meshes
 from l3d_app.models.svr_encoder import ImageEncoder

@@ -58,7 +58,8 @@ def test_deterministic_and_cached(tiny, tmp_path):
 
 def test_depth_maps_match_the_mesh(tiny):
     """Unprojected depth pixels lie on the mesh surface ."""
-    from l3d_app.geometry.rgbd import point_mesh_distance, unproject_depth
+    from l3d_app.geometry.point_mesh_distance import point_mesh_distance
+    from l3d_app.geometry.rgbd import unproject_depth
 
     data, _ = tiny
     cloud = unproject_depth(data.depth[0], data.depth_cameras)
