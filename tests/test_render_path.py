@@ -112,6 +112,7 @@ def test_render_path_on_a_gs_train_run_matches_the_model(compose, tmp_path):
 
     from l3d_app.data.nerf_views import nerf_builtin
     from l3d_app.geometry.gaussian_ply import load_gaussian_ply
+    from l3d_app.models.gaussians import GaussianModel
     from l3d_app.render.gaussians import rasterize_gaussians
 
     data_args = ["data.image_size=24", "data.n_train=12", "data.n_val=1", "data.n_test=1", "data.antialias=1",
@@ -131,7 +132,7 @@ def test_render_path_on_a_gs_train_run_matches_the_model(compose, tmp_path):
     assert sum(1 for _ in r) == 8
     # frame 0 = the first training camera; rendered independently from gs_train's own PLY
     data = nerf_builtin(image_size=24, n_train=12, n_val=1, n_test=1, antialias=1, cache_dir=str(tmp_path / "cache"))
-    model = load_gaussian_ply(run / "point_cloud.ply")
+    model = GaussianModel(**load_gaussian_ply(run / "point_cloud.ply"))
     ref = rasterize_gaussians(model.means, model.log_scales, model.quats, model.opacity_logits, model.sh, 0,
                               data.cameras[int(data.train[0])], data.background)["color"][0]
     err = np.abs(gif[0][:, :24] / 255.0 - ref.detach().clamp(0, 1).numpy())

@@ -216,11 +216,12 @@ def render_path(cfg, ctx) -> dict:
     data, ply_model = None, None
     if cfg.get("ply"):
         from l3d_app.geometry.gaussian_ply import load_gaussian_ply
+        from l3d_app.models.gaussians import GaussianModel
 
         ply = resolve_path(str(cfg.ply))
         if not ply.is_file():
             raise UserError(f"PLY file not found: {ply}")
-        ply_model = load_gaussian_ply(ply).to(ctx.device)
+        ply_model = GaussianModel(**load_gaussian_ply(ply)).to(ctx.device)
         render, kind = _gaussian_renderer(ply_model, int(cfg.sh_degree), list(cfg.background)), "ply"
     elif cfg.get("checkpoint"):
         render, data, kind = load_run(cfg.checkpoint, ctx.device, int(cfg.chunk))
