@@ -42,3 +42,11 @@ def test_sampling_variance_task_rates(compose, tmp_path):
     assert m["slab_stratified_slope"] == pytest.approx(-2.0, abs=0.3)
     assert m["bump_stratified_slope"] < -2.6
     assert len(m["rows"]) == 10 and (tmp_path / "variance.png").stat().st_size > 0
+
+
+def test_bad_sample_counts_are_user_errors(compose, tmp_path):
+    from l3d_app.errors import UserError
+
+    with pytest.raises(UserError, match="samples"):
+        run_task(compose("task=sampling_variance", "samples=[1,2]"), out_dir=tmp_path)
+    assert not (tmp_path / "metrics.json").exists()

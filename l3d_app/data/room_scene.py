@@ -15,6 +15,7 @@ from typing import Sequence
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.primitives import box, icosphere, join, transformed
@@ -62,9 +63,9 @@ def room_points(num_samples: int = 20000, noise: float = 0.0, seed: int = 0, dev
     """``num_samples`` points on :func:`room_mesh` with true normals and colours, plus N(0, noise^2)
     per coordinate; drawn on the CPU from ``seed``, then moved to ``device``."""
     if int(num_samples) < 3:
-        raise ValueError(f"the room needs num_samples >= 3, got {num_samples}")
+        raise UserError(f"the room needs num_samples >= 3, got {num_samples}")
     if not float(noise) >= 0:
-        raise ValueError(f"noise must be >= 0, got {noise}")
+        raise UserError(f"noise must be >= 0, got {noise}")
     gen = torch.Generator().manual_seed(int(seed))
     cloud = sample_points_on_mesh(room_mesh(), int(num_samples), gen, return_normals=True, return_colors=True)
     points = cloud.points + float(noise) * torch.randn(cloud.points.shape, generator=gen)

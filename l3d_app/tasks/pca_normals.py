@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.geometry.normals import estimate_normals
 from l3d_app.geometry.pointcloud import PointCloud
@@ -31,9 +32,11 @@ CLASS_COLOURS = torch.tensor([[0.20, 0.40, 0.90], [0.95, 0.55, 0.10], [0.60, 0.6
 def pca_normals(cfg, ctx) -> dict:
     """Estimate, classify, score (when true normals exist), draw; return the statistics."""
     require_positive(cfg, "k", "tolerance_deg", "image_size")
+    if int(cfg.k) < 3 or not float(cfg.tolerance_deg) < 45:
+        raise UserError(f"need k >= 3 and tolerance_deg < 45, got k={cfg.k}, tolerance_deg={cfg.tolerance_deg}")
     cloud = DATASETS.build(cfg.data, device=ctx.device)
     if not isinstance(cloud, PointCloud):
-        raise ValueError("pca_normals needs a point-cloud data source (data=room, data=rgbd, data=*_parametric, ...)")
+        raise UserError("pca_normals needs a point-cloud data source (data=room, data=rgbd, data=*_parametric, ...)")
     points = cloud.points.float()
     with ctx.stopwatch.stage("normals"):
         normals = estimate_normals(points, k=int(cfg.k))

@@ -17,6 +17,7 @@ import math
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.rays import camera_rays
@@ -30,6 +31,8 @@ from l3d_app.tasks.common import require_positive
 def ray_diagnostics(cfg, ctx) -> dict:
     """Write the three diagnostic pictures of the camera; return the closed-form checks."""
     require_positive(cfg, "image_size", "distance", "fov", "far", "n_samples", "stride")
+    if not 0 <= float(cfg.near) < float(cfg.far):
+        raise UserError(f"need 0 <= near < far, got near={cfg.near}, far={cfg.far}")
     size = int(cfg.image_size)
     cams = look_at_cameras(float(cfg.distance), float(cfg.elevation), float(cfg.azimuth), float(cfg.fov),
                            size, device=ctx.device)

@@ -12,6 +12,7 @@ metrics.json: one row per (density, N) and the fitted log-log slopes (uniform -1
 
 from __future__ import annotations
 
+from l3d_app.errors import UserError
 from l3d_app.registry import TASKS
 from l3d_app.render.sampling_variance import (GaussianBump, Slab, loglog_slope, optical_depth_estimates,
                                               stratified_variance_slab, uniform_variance)
@@ -25,8 +26,8 @@ def sampling_variance(cfg, ctx) -> dict:
     require_positive(cfg, "rays", "far")
     near, far = float(cfg.near), float(cfg.far)
     ns = [int(n) for n in cfg.samples]
-    if min(ns) < 2:
-        raise ValueError(f"samples must all be >= 2, got {ns}")
+    if not ns or min(ns) < 2 or not 0 <= near < far:
+        raise UserError(f"need samples all >= 2 and 0 <= near < far, got samples={ns}, near={near}, far={far}")
     densities = {"slab": Slab(float(cfg.slab.start), float(cfg.slab.end), float(cfg.slab.density)),
                  "bump": GaussianBump(float(cfg.bump.centre), float(cfg.bump.width), float(cfg.bump.density))}
     rows, curves, points, metrics = [], {}, {}, {}
