@@ -97,7 +97,7 @@ def sds_mesh(cfg, ctx) -> dict:
     score_after = score_frames(after, prompt)
     frames = torch.cat([before, after], dim=2)
     save_gif(ctx.path("sds_mesh.gif"), frames, fps=float(cfg.fps))
-    save_png(ctx.path("after.png"), torch.cat(list(after[: min(8, len(after))]), dim=1))
+    save_png(ctx.path("after.png"), torch.cat(list(after[: min(int(cfg.png_frames), len(after))]), dim=1))
     ctx.logger.image_sequence("sds_mesh/turntable", frames)
     if not bool(torch.isfinite(after).all()):
         raise UserError("the optimised texture rendered non-finite values")
