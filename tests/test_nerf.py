@@ -12,6 +12,7 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras, to_opengl_c2w
 from l3d_app.models.encodings import HASH_PRIMES, GridEncoding, HarmonicEncoding
 from l3d_app.models.nerf import GridField, NeRFMLP
+from l3d_app.render.estimators import OccupancyEstimator, StratifiedEstimator
 from l3d_app.render.occupancy import OccupancyGrid
 from l3d_app.render.radiance import render_field_rays
 from conftest import course_data
@@ -145,10 +146,10 @@ BOX = ((-1.0,) * 3, (1.0,) * 3)
 def test_all_occupied_grid_renders_exactly_like_no_grid():
     o, d = _rays()
     field = BallField()
-    grid = OccupancyGrid(BOX, resolution=16)
-    assert grid.occupied_fraction == 1.0
-    a = render_field_rays(field, o, d, BOX, 64, grid=None, background=(1.0, 1.0, 1.0))
-    b = render_field_rays(field, o, d, BOX, 64, grid=grid, background=(1.0, 1.0, 1.0))
+    est = OccupancyEstimator(BOX, n_samples=64, resolution=16)
+    assert est.grid.occupied_fraction == 1.0
+    a = render_field_rays(field, o, d, StratifiedEstimator(64, scene_box=BOX), background=(1.0, 1.0, 1.0))
+    b = render_field_rays(field, o, d, est, background=(1.0, 1.0, 1.0))
     for k in ("color", "depth", "opacity"):
         assert torch.equal(a[k], b[k])
     assert float(a["opacity"].max()) > 0.9 and float(a["opacity"].min()) < 0.01   # the ball is in view
@@ -157,16 +158,17 @@ def test_all_occupied_grid_renders_exactly_like_no_grid():
 def test_occupancy_grid_skips_empty_samples_without_changing_the_render():
     o, d = _rays()
     field = BallField()
-    grid = OccupancyGrid(BOX, resolution=16)
+    est = OccupancyEstimator(BOX, n_samples=64, resolution=16)
+    grid = est.grid
     # occupied = cells whose box touches the ball (conservative, exact cover)
     half = (grid.hi - grid.lo) / grid.resolution / 2
     gap = ((grid.cell_centers() - field.c).abs() - half).clamp_min(0).norm(dim=-1)
     grid.mask.copy_(gap < 0.4)
     assert 0.02 < grid.occupied_fraction < 0.3
     field.calls = 0
-    dense = render_field_rays(field, o, d, BOX, 64, background=(1.0, 1.0, 1.0))
+    dense = render_field_rays(field, o, d, StratifiedEstimator(64, scene_box=BOX), background=(1.0, 1.0, 1.0))
     dense_calls, field.calls = field.calls, 0
-    skip = render_field_rays(field, o, d, BOX, 64, grid=grid, background=(1.0, 1.0, 1.0))
+    skip = render_field_rays(field, o, d, est, background=(1.0, 1.0, 1.0))
     assert field.calls < 0.5 * dense_calls
     assert float(skip["samples_per_ray"]) * o.shape[0] == pytest.approx(field.calls)
     torch.testing.assert_close(skip["color"], dense["color"], atol=1e-6, rtol=0)

@@ -1,6 +1,7 @@
 """Neural surfaces: eikonal loss at kinks, SDF network init, SDF volume rendering, tasks volsdf / neural_sdf."""
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -11,6 +12,9 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.sdf import Box, Sphere
 from l3d_app.losses.eikonal import eikonal_at, eikonal_loss, sdf_gradient
 from l3d_app.models.sdf_net import SDFField, SDFNetwork, pretrain_sphere
+from l3d_app.render.densities import LaplaceDensity
+from l3d_app.render.estimators import SDFCacheProposal
+from l3d_app.render.neus import NeuSDensity
 from l3d_app.render.sdf_volume import render_sdf_rays
 
 TINY = ["data.image_size=32", "data.n_train=48", "data.n_val=0", "data.n_test=2", "data.antialias=1",
@@ -64,8 +68,10 @@ def test_sdf_volume_rendering_of_an_exact_sphere(density):
     o = torch.tensor([[0.0, 0.0, -2.0], [0.0, 0.2, -2.0], [0.0, 0.9, -2.0]])
     d = torch.tensor([[0.0, 0.0, 1.0]]).expand(3, 3)
     colour = lambda p, v: (sph(p), torch.full((p.shape[0], 3), 0.25))  # noqa: E731
-    out = render_sdf_rays(sph, colour, o, d, ((-1, -1, -1), (1, 1, 1)), density=density, alpha=200.0, beta=0.005,
-                          s=400.0, n_coarse=64, n_fine=32, background=(1.0, 1.0, 1.0))
+    est = SDFCacheProposal(((-1, -1, -1), (1, 1, 1)), n_coarse=64, n_fine=32, resolution=0)
+    dens = LaplaceDensity(0.005, 200.0, learnable=False, beta_min=0.0) if density == "volsdf" else NeuSDensity(400.0)
+    out = render_sdf_rays(colour, o, d, est, dens, field=SimpleNamespace(sdf=sph), background=(1.0, 1.0, 1.0))
+    out["t"] = out["t"].reshape(3, 32)
     ref_t = 2.0 - torch.sqrt(0.25 - torch.tensor([0.0, 0.2]) ** 2)
     assert out["opacity"][:2].min() > 0.99 and out["opacity"][2] < 1e-3
     torch.testing.assert_close(out["depth"][:2] / out["opacity"][:2], ref_t, atol=0.02, rtol=0)

@@ -61,11 +61,11 @@ from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.losses.nerf_regularizers import density_normals, opacity_entropy, orientation_penalty
 from l3d_app.losses.sds import rgb_to_model_space, sds_loss
-from l3d_app.registry import MODELS, TASKS
-from l3d_app.render.occupancy import OccupancyGrid
+from l3d_app.registry import MODELS, SAMPLERS, TASKS
 from l3d_app.render.radiance import render_field_rays
 from l3d_app.render.volume import render_rays_chunked
 from l3d_app.runtime.media import save_gif, save_png
+from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import require_positive
 from l3d_app.tasks.sds_mesh import load_prior, score_frames, score_metrics
@@ -141,13 +141,13 @@ def render_views(field: BlobField, cams: Cameras, shading: str, *, n_samples: in
                  light_offset: Optional[torch.Tensor] = None, ambient: float = 0.3,
                  need_normals: bool = True, training: bool = False,
                  generator: Optional[torch.Generator] = None, chunk: int = 0,
-                 grid: Optional[OccupancyGrid] = None) -> Dict[str, torch.Tensor]:
+                 estimator=None) -> Dict[str, torch.Tensor]:
     """Render B cameras -> image (B, H, W, 3), opacity (B, H, W), depth (B, H, W) (sum w t),
     orient (B, H, W) (sum w max(0, n.d)^2), normal (B, H, W, 3) (sum w n).
 
     ``training`` jitters the samples and keeps the graph (also through the normals).
-    ``chunk`` > 0 renders that many rays per call (evaluation, without a graph). ``grid``:
-    samples in its empty cells are skipped (density 0 there).
+    ``chunk`` > 0 renders that many rays per call (evaluation, without a graph). ``estimator``:
+    a ``SAMPLERS`` estimator over ``SCENE_BOX`` (None: 'n_samples' stratified samples).
     """
     origins, dirs = camera_rays(cams, normalize=True)
     if light_offset is None:
@@ -155,10 +155,12 @@ def render_views(field: BlobField, cams: Cameras, shading: str, *, n_samples: in
     fn = shaded_field(field, shading, light_offset, ambient, need_normals, create_graph=training)
     bg = torch.zeros(N_CHANNELS, device=origins.device)
     bg[:3] = torch.as_tensor(background, dtype=torch.float32, device=origins.device)
+    if estimator is None:
+        estimator = SAMPLERS.build({"name": "stratified", "n_samples": n_samples}, scene_box=SCENE_BOX)
 
     def render(o, d):
-        out = render_field_rays(fn, o, d, scene_box=SCENE_BOX, n_samples=n_samples, perturb=training,
-                                generator=generator, background=bg, grid=grid)
+        out = render_field_rays(fn, o, d, estimator, perturb=training, generator=generator, background=bg,
+                                density_field=field)
         return {"color": out["color"], "opacity": out["opacity"], "depth": out["depth"]}
 
     if chunk > 0:
@@ -241,20 +243,15 @@ def sds_nerf(cfg, ctx) -> dict:
     render_kw = dict(n_samples=int(cfg.n_samples), background=bg, ambient=float(cfg.ambient))
     ranges = {k: list(cfg[k]) for k in ("distance_range", "elevation_range", "fov_range")}
     lam_e, lam_o = float(cfg.lambda_entropy), float(cfg.lambda_orient)
-    opt = torch.optim.Adam(field.parameters(), lr=float(cfg.lr), eps=1e-15)
-    grid, extra = None, {}
-    if bool(cfg.occupancy.enabled):
-        grid = OccupancyGrid(SCENE_BOX, resolution=int(cfg.occupancy.resolution),
-                             threshold=float(cfg.occupancy.threshold), decay=float(cfg.occupancy.decay),
-                             warmup_steps=int(cfg.occupancy.warmup_steps),
-                             update_every=int(cfg.occupancy.update_every)).to(ctx.device)
-        grid.update(field.density, 0, ctx.generator, force=True)     # start from the blob's extent
-        extra["occupancy"] = grid
-    render_kw["grid"] = grid
-    trainable = Trainable({"field": field}, opt, extra=extra)
+    opt, scheds = build_optimizer(cfg.optim, field.parameters(), int(cfg.iters))
+    sampler = SAMPLERS.build(cfg.sampler, scene_box=SCENE_BOX).to(ctx.device)
+    sampler.update(0, field, ctx.generator)          # an occupancy grid starts from the blob's extent
+    render_kw["estimator"] = sampler
+    trainable = Trainable({"field": field}, opt, extra={"sampler": sampler}, schedulers=scheds)
     gen = ctx.generator
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
+        sampler.update(step, field, gen)
         latent = step < latent_iters
         side = prior.latent_shape[-1] if latent else size
         cams, azim, elev = sample_orbit_cameras(int(cfg.batch_views), side, gen, distance=ranges["distance_range"],
@@ -289,14 +286,10 @@ def sds_nerf(cfg, ctx) -> dict:
         rate = score_frames(out["image"].clamp(0, 1), prompt)["match"]
         return {"opacity": float(out["opacity"].mean()), **({} if rate is None else {"match_rate": rate})}
 
-    def after_step(step: int) -> None:
-        if grid is not None:
-            grid.update(field.density, step, gen)
-
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
                        checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="sds_nerf",
-                       after_step=after_step)
+                       )
     with ctx.stopwatch.stage("render"):
         colour = render_turntable(cams_360, "albedo")
         plain = render_turntable(cams_360, "textureless")
@@ -318,7 +311,7 @@ def sds_nerf(cfg, ctx) -> dict:
         "orientation": round(float(plain["orient"].mean()), 6),
         "guidance_scale": float(cfg.guidance_scale),
         "latent_iters": min(latent_iters, result.step),
-        "occupied_fraction": round(grid.occupied_fraction, 5) if grid is not None else 1.0,
+        **{k: round(v, 5) for k, v in sampler.stats().items()},
         "iters": result.step,
         "n_params": n_params,
         "render_size": size,

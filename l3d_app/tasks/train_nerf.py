@@ -39,8 +39,9 @@ from l3d_app.geometry.mesh_io import save_mesh
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.metrics.image import psnr, ssim
 from l3d_app.registry import DATASETS, MODELS, TASKS
-from l3d_app.render.occupancy import OccupancyGrid
+from l3d_app.registry import SAMPLERS
 from l3d_app.render.radiance import render_field_rays
+from l3d_app.runtime.optim import build_optimizer
 from l3d_app.render.volume import render_rays_chunked
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.training import Trainable, train
@@ -69,30 +70,22 @@ def train_nerf(cfg, ctx) -> dict:
     n_rays, batch = flat_o.shape[0], int(cfg.batch_rays)
     steps_per_epoch = max(1, n_rays // batch)
 
-    opt = torch.optim.Adam(model.parameters(), lr=float(cfg.lr), eps=1e-15 if cfg.model.name == "grid_field" else 1e-8)
-    decay_steps = max(1, int(round(float(cfg.lr_decay_epochs) * steps_per_epoch)))
-    sched = torch.optim.lr_scheduler.StepLR(opt, step_size=decay_steps, gamma=float(cfg.lr_decay))
-    grid = None
-    extra = {"scheduler": sched}
-    if bool(cfg.occupancy.enabled):
-        grid = OccupancyGrid(box, resolution=int(cfg.occupancy.resolution), threshold=float(cfg.occupancy.threshold),
-                             decay=float(cfg.occupancy.decay), warmup_steps=int(cfg.occupancy.warmup_steps),
-                             update_every=int(cfg.occupancy.update_every)).to(ctx.device)
-        extra["occupancy"] = grid
-    trainable = Trainable({"field": model}, opt, extra=extra)
-    render_kw = dict(scene_box=box, n_samples=int(cfg.n_samples), n_fine=int(cfg.n_fine), background=bg)
+    opt, scheds = build_optimizer(cfg.optim, model.parameters(), int(cfg.iters))
+    sampler = SAMPLERS.build(cfg.sampler, scene_box=box).to(ctx.device)
+    grid = getattr(sampler, "grid", None)
+    trainable = Trainable({"field": model}, opt, extra={"sampler": sampler}, schedulers=scheds)
+    render_kw = dict(estimator=sampler, background=bg)
     stats = {"samples_per_ray": 0.0, "train_seconds": 0.0, "steps": 0}
     budget = float(cfg.get("time_budget", 0) or 0)
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
         t0 = time.perf_counter()
+        sampler.update(step, model, ctx.generator)
         idx = torch.randint(0, n_rays, (batch,), generator=ctx.generator,
                             device=ctx.generator.device).to(ctx.device)
         out = render_field_rays(model, flat_o[idx], flat_d[idx], perturb=bool(cfg.perturb),
-                                generator=ctx.generator, grid=grid, **render_kw)
+                                generator=ctx.generator, **render_kw)
         loss = ((out["color"] - flat_rgb[idx]) ** 2).mean()
-        if "color_coarse" in out:
-            loss = loss + ((out["color_coarse"] - flat_rgb[idx]) ** 2).mean()
         stats["samples_per_ray"] = float(out["samples_per_ray"])
         stats["_t0"] = t0
         logs = {"loss": loss, "samples_per_ray": out["samples_per_ray"].detach(),
@@ -102,9 +95,6 @@ def train_nerf(cfg, ctx) -> dict:
         return logs
 
     def after_step(step: int) -> None:
-        sched.step()
-        if grid is not None:
-            grid.update(model.density, step, ctx.generator)
         stats["train_seconds"] += time.perf_counter() - stats.pop("_t0", time.perf_counter())
         stats["steps"] += 1
         if budget > 0 and stats["train_seconds"] >= budget:
@@ -112,7 +102,7 @@ def train_nerf(cfg, ctx) -> dict:
 
     def render_views(cam_idx: torch.Tensor) -> Dict[str, torch.Tensor]:
         o, d = origins[cam_idx.to(ctx.device)], dirs[cam_idx.to(ctx.device)]
-        fn = lambda a, b: {k: v for k, v in render_field_rays(model, a, b, grid=grid, **render_kw).items()  # noqa: E731
+        fn = lambda a, b: {k: v for k, v in render_field_rays(model, a, b, **render_kw).items()  # noqa: E731
                            if k in ("color", "depth", "opacity")}
         return render_rays_chunked(fn, o, d, int(cfg.chunk))
 
@@ -120,6 +110,7 @@ def train_nerf(cfg, ctx) -> dict:
     eval_idx = data.test[:n_eval]
 
     def eval_fn(step: int) -> Dict[str, float]:
+        sampler.update(step, model, ctx.generator)
         pred = render_views(eval_idx)["color"].clamp(0, 1)
         target = data.images[eval_idx.to(ctx.device)]
         out = {"psnr": float(psnr(pred, target)), "ssim": float(ssim(pred, target)),
@@ -135,6 +126,7 @@ def train_nerf(cfg, ctx) -> dict:
                        checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="train_nerf",
                        after_step=after_step)
     with torch.no_grad():
+        sampler.update(result.step, model, ctx.generator)
         final = render_views(data.test)
         target = data.images[data.test.to(ctx.device)]
         pred = final["color"].clamp(0, 1)
@@ -165,7 +157,7 @@ def _turntable(cfg, ctx, render_kw, model, grid, data) -> None:
     cams = turntable(int(cfg.gif_frames), dist, float(cfg.gif_elevation), float(data.cameras.fov()[0]),
                      int(cfg.gif_size) if int(cfg.gif_size) > 0 else data.cameras.width, device=ctx.device)
     o, d = camera_rays(cams, normalize=True)
-    fn = lambda a, b: {k: v for k, v in render_field_rays(model, a, b, grid=grid, **render_kw).items()  # noqa: E731
+    fn = lambda a, b: {k: v for k, v in render_field_rays(model, a, b, **render_kw).items()  # noqa: E731
                        if k in ("color", "depth", "opacity")}
     out = render_rays_chunked(fn, o, d, int(cfg.chunk))
     depth = out["depth"] / out["opacity"].clamp_min(1e-6)

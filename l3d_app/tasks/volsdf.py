@@ -63,11 +63,11 @@ from l3d_app.metrics.image import psnr, ssim
 from l3d_app.metrics.surface_scores import surface_scores
 from l3d_app.models.sdf_grid import pretrain_field
 from l3d_app.registry import DATASETS, MODELS, TASKS
-from l3d_app.render.densities import LaplaceDensity
-from l3d_app.render.sdf_volume import DENSITIES, SDFGridCache, render_sdf_rays
+from l3d_app.registry import DENSITIES, SAMPLERS
+from l3d_app.render.sdf_volume import render_sdf_rays
 from l3d_app.render.sphere_tracing import render_sdf_shaded
 from l3d_app.render.volume import render_rays_chunked
-from l3d_app.runtime.lr_schedules import warmup_cosine
+from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import require_positive
@@ -76,25 +76,11 @@ from l3d_app.tasks.common import require_positive
 @TASKS.register("volsdf")
 def volsdf(cfg, ctx) -> dict:
     """Train, evaluate (images and surface), write gifs / mesh / metrics."""
-    require_positive(cfg, "iters", "batch_rays", "lr", "n_coarse", "n_fine", "chunk", "beta", "s", "supersample")
-    density = str(cfg.density)
-    if density not in DENSITIES:
-        raise UserError(f"density must be one of {', '.join(DENSITIES)}, got {density!r}")
-    beta_mode = str(cfg.beta_mode)
-    if beta_mode not in ("anneal", "learnable", "fixed"):
-        raise UserError(f"beta_mode must be anneal, learnable or fixed, got {cfg.beta_mode!r}")
-    alpha = cfg.get("alpha")
-    if alpha is not None and not (isinstance(alpha, (int, float)) and alpha > 0):
-        raise UserError(f"alpha must be a positive number or null (1/beta), got {alpha!r}")
-    if not 0 <= float(cfg.beta_min) < min(float(cfg.beta), float(cfg.beta_end)):
-        raise UserError(f"beta_min must be in [0, min(beta, beta_end)), got {cfg.beta_min} "
-                        f"(beta={cfg.beta}, beta_end={cfg.beta_end})")
+    require_positive(cfg, "iters", "batch_rays", "chunk", "supersample")
     data = DATASETS.build(cfg.data).to(ctx.device)
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
-    dens = LaplaceDensity(float(cfg.beta), None if alpha is None else float(alpha),
-                          learnable=beta_mode == "learnable", beta_min=float(cfg.beta_min)).to(ctx.device)
-    anneal_steps = max(1.0, float(cfg.anneal_fraction) * int(cfg.iters))
+    dens = DENSITIES.build(cfg.density).to(ctx.device)
     n_params = sum(p.numel() for p in model.parameters())
     resuming = bool(cfg.resume) and (ctx.out_dir / "checkpoint.pt").exists()
     if int(cfg.pretrain_steps) > 0 and not resuming:
@@ -102,7 +88,7 @@ def volsdf(cfg, ctx) -> dict:
                              box, int(cfg.pretrain_steps), generator=ctx.generator)
         ctx.logger.text("pretrain", f"sphere pretraining: mean |f - sdf_sphere| = {err:.4g}")
     levels = _LevelSchedule(model, int(cfg.levels_start), int(cfg.level_every))
-    cache = SDFGridCache(box, int(cfg.cache_resolution)).to(ctx.device) if int(cfg.cache_resolution) > 1 else None
+    sampler = SAMPLERS.build(cfg.sampler, scene_box=box).to(ctx.device)
 
     origins, dirs = camera_rays(data.cameras, normalize=False)                # (N, H, W, 3), camera Z = 1
     tr = data.train.to(ctx.device)
@@ -116,17 +102,10 @@ def volsdf(cfg, ctx) -> dict:
     lo = torch.tensor(box[0], device=ctx.device)
     hi = torch.tensor(box[1], device=ctx.device)
 
-    opt = torch.optim.Adam([{"params": list(model.parameters())},
-                            {"params": list(dens.parameters()), "lr": float(cfg.lr_beta)}],
-                           lr=float(cfg.lr), eps=1e-15)
-    warm = int(cfg.warmup_steps)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, warmup_cosine(warm, warm, int(cfg.iters), float(cfg.lr_final_ratio)))
-    extra = {"scheduler": sched}
-    if cache is not None:
-        extra["sdf_cache"] = cache
-    trainable = Trainable({"field": model, "density": dens}, opt, extra=extra)
-    fixed = dict(scene_box=box, density=density, s=float(cfg.s), n_coarse=int(cfg.n_coarse),
-                 n_fine=int(cfg.n_fine), background=data.background, coarse_fn=cache)
+    groups = [{"params": list(model.parameters())}, {"params": list(dens.parameters()), "lr": float(cfg.lr_beta)}]
+    opt, scheds = build_optimizer(cfg.optim, groups, int(cfg.iters))
+    trainable = Trainable({"field": model, "density": dens}, opt, extra={"sampler": sampler}, schedulers=scheds)
+    fixed = dict(estimator=sampler, density=dens, field=model, background=data.background)
     field_fn = _field_with_gradient(model)
     stats = {"samples_per_ray": 0.0, "fine_samples_per_ray": 0.0, "train_seconds": 0.0, "cpu_seconds": 0.0,
              "steps": 0}
@@ -135,11 +114,8 @@ def volsdf(cfg, ctx) -> dict:
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
         stats["_t0"], stats["_c0"] = time.perf_counter(), time.process_time()
         levels.apply(step)
-        if beta_mode == "anneal":      # geometric from beta to beta_end over anneal_fraction of the run
-            p = min(1.0, step / anneal_steps)
-            dens.set_beta(float(cfg.beta) * (float(cfg.beta_end) / float(cfg.beta)) ** p)
-        if cache is not None and (step % int(cfg.cache_every) == 0 or stats["steps"] == 0):
-            cache.update(model.sdf)
+        dens.schedule(step, int(cfg.iters))
+        sampler.update(step, model, ctx.generator)
         idx = torch.randint(0, n_rays, (batch,), generator=ctx.generator,
                             device=ctx.generator.device).to(ctx.device)
         d = flat_d[idx]
@@ -147,11 +123,10 @@ def volsdf(cfg, ctx) -> dict:
             j = torch.rand(batch, 2, generator=ctx.generator, device=ctx.generator.device).to(ctx.device) - 0.5
             d = d + j[:, :1] * du[flat_cam[idx]] + j[:, 1:] * dv[flat_cam[idx]]
         d = torch.nn.functional.normalize(d, dim=-1)
-        out = render_sdf_rays(model.sdf, field_fn, flat_o[idx], d, alpha=dens.alpha, beta=dens.beta,
-                              perturb=True, generator=ctx.generator, **fixed)
+        out = render_sdf_rays(field_fn, flat_o[idx], d, perturb=True, generator=ctx.generator, **fixed)
         color_loss = ((out["color"] - flat_rgb[idx]) ** 2).mean()
         logs = {"color_loss": color_loss.detach(), "samples_per_ray": out["samples_per_ray"].detach(),
-                "beta": dens.beta.detach(), "active_levels": torch.tensor(float(levels.active))}
+                **{k: torch.tensor(v) for k, v in dens.stats().items()}, "active_levels": torch.tensor(float(levels.active))}
         loss = color_loss
         if float(cfg.w_eikonal) > 0:
             u = torch.rand(int(cfg.eikonal_points), 3, generator=ctx.generator,
@@ -168,7 +143,6 @@ def volsdf(cfg, ctx) -> dict:
         return logs
 
     def after_step(step: int) -> None:
-        sched.step()
         stats["train_seconds"] += time.perf_counter() - stats.pop("_t0", time.perf_counter())
         stats["cpu_seconds"] += time.process_time() - stats.pop("_c0", time.process_time())
         stats["steps"] += 1
@@ -176,8 +150,7 @@ def volsdf(cfg, ctx) -> dict:
             os.kill(os.getpid(), signal.SIGINT)     # the shared loop stops cleanly on SIGINT
 
     def render_fn(o: torch.Tensor, d: torch.Tensor) -> Dict[str, torch.Tensor]:
-        out = render_sdf_rays(model.sdf, field_fn, o, d, alpha=dens.alpha.detach(), beta=dens.beta.detach(),
-                              **fixed)
+        out = render_sdf_rays(field_fn, o, d, **fixed)
         return {k: out[k] for k in ("color", "depth", "opacity")}
 
     n_eval = int(cfg.eval_views) if int(cfg.eval_views) > 0 else len(data.test)
@@ -194,7 +167,7 @@ def volsdf(cfg, ctx) -> dict:
             pred = render_views(eval_idx)
         target = data.images[eval_idx]
         return {"psnr": float(psnr(pred.clamp(0, 1), target)), "ssim": float(ssim(pred.clamp(0, 1), target)),
-                "beta": float(dens.beta), "samples_per_ray": stats["samples_per_ray"],
+                **dens.stats(), "samples_per_ray": stats["samples_per_ray"],
                 "train_seconds": stats["train_seconds"], "cpu_seconds": stats["cpu_seconds"]}
 
     with ctx.stopwatch.stage("train"):
@@ -203,8 +176,7 @@ def volsdf(cfg, ctx) -> dict:
                        after_step=after_step)
     model.eval()
     with torch.no_grad():
-        if cache is not None:
-            cache.update(model.sdf)
+        sampler.update(result.step, model, ctx.generator, force=True)
         te = data.test.to(ctx.device)
         pred = render_views(te).clamp(0, 1)
         target = data.images[te]
@@ -216,9 +188,7 @@ def volsdf(cfg, ctx) -> dict:
         with ctx.stopwatch.stage("gifs"):
             _turntables(cfg, ctx, model, render_fn, data, box)
     metrics.update({
-        "density": density, "alpha": None if alpha is None else float(alpha), "beta": float(cfg.beta),
-        "beta_mode": beta_mode, "beta_final": round(float(dens.beta), 6),
-        "alpha_final": round(float(dens.alpha), 4), "s": float(cfg.s),
+        "density": str(cfg.density.name), **{f"{k}_final": round(v, 6) for k, v in dens.stats().items()},
         "iters": result.step, "n_params": n_params,
         "train_seconds": round(ctx.stopwatch.stages["train"], 4),
         "mesh_seconds": round(ctx.stopwatch.stages["mesh"], 4),
