@@ -1,8 +1,13 @@
 """The application entry: a composed Hydra config in, a finished run out.
 
 ``main.py`` hands the config to :func:`run`. Everything user-facing that can go wrong
-before or during a task (a missing value, an unknown registry name, a bad file) is a
-:class:`UserError`: printed on one line, exit status 2, no traceback.
+before or during a task (a missing value, an unknown registry name, a bad file, a bad
+size) reaches the app as a ``ValueError`` / ``TypeError`` (library code raises those;
+:class:`~l3d_app.errors.UserError` is a ``ValueError``) or an OmegaConf config error, and
+is printed on one line, exit status 2, no traceback. ``L3D_DEBUG=1`` shows the traceback.
+
+The registries fill on import: each package imports its registering modules
+(:func:`load_registries`), so no hand-kept list of modules exists.
 """
 
 from __future__ import annotations
@@ -14,8 +19,8 @@ from typing import Any, Dict, Optional
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
-from l3d_app import catalog
 from l3d_app.errors import UserError
 from l3d_app.registry import TASKS
 from l3d_app.runtime.context import RunContext
@@ -27,17 +32,41 @@ from l3d_app.runtime.seed import seed_everything
 def run(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]:
     """Run the task named by ``cfg.task_name``; return ``metrics[cfg.objective]`` if set.
 
-    A :class:`UserError` ends the process with a one-line message and exit status 2; a run
-    stopped by SIGINT/SIGTERM saves its checkpoint and metrics, then exits with status 130.
+    Bad input (``ValueError``, ``TypeError``, a config error) ends the process with a
+    one-line message and exit status 2 (set ``L3D_DEBUG=1`` to see the traceback instead);
+    a run stopped by SIGINT/SIGTERM saves its checkpoint and metrics, then exits with 130.
     """
     try:
         return run_task(cfg, out_dir)
-    except UserError as err:
-        print(f"l3d_app: error: {err}", file=sys.stderr)
+    except USER_ERRORS as err:
+        if debug_enabled():
+            raise
+        print(f"l3d_app: error: {one_line(err)}", file=sys.stderr)
         sys.exit(2)
     except RunInterrupted as err:
         print(f"l3d_app: {err}", file=sys.stderr)
         sys.exit(130)
+
+
+USER_ERRORS = (ValueError, TypeError, OmegaConfBaseException)
+"""What the app reports as a user error: library code raises ValueError/TypeError for bad
+input (UserError is a ValueError); OmegaConf raises its own errors for bad config keys."""
+
+
+def debug_enabled() -> bool:
+    """True when ``L3D_DEBUG`` is set to a non-empty value other than 0: tracebacks shown."""
+    return os.environ.get("L3D_DEBUG", "").strip() not in ("", "0")
+
+
+def one_line(err: BaseException) -> str:
+    """The error's message on one line (OmegaConf messages span several lines)."""
+    text = " ".join(str(err).split()) or type(err).__name__
+    return text if isinstance(err, UserError) else f"{text} ({type(err).__name__}; L3D_DEBUG=1 shows the traceback)"
+
+
+def load_registries() -> None:
+    """Import every package that registers something, so every registry is complete."""
+    from l3d_app import data, diffusion, geometry, losses, models, render, tasks  # noqa: F401
 
 
 class RunInterrupted(Exception):
@@ -50,7 +79,7 @@ def run_task(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]
     if missing:
         raise UserError(f"missing value for {missing[0]}: pass it on the command line, "
                         f"e.g. {missing[0]}=...")
-    catalog.load_all()
+    load_registries()
     task = TASKS.get(str(cfg.task_name))
     out_dir = Path(out_dir) if out_dir is not None else _hydra_output_dir()
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -7,8 +7,10 @@ Usage::
 
     renderer = RENDERERS.build({"name": "mesh", "image_size": 128})
 
-``build`` accepts any mapping (a plain dict or an OmegaConf ``DictConfig``); the ``name``
-key picks the entry and every other key is passed as a keyword argument. A name that is
+``build`` accepts any mapping; the ``name`` key picks the entry and every other key is
+passed as a keyword argument, with nested mappings / sequences turned into plain dicts /
+lists (:func:`plain`). This module never imports OmegaConf: the app and the tasks hand it
+their configs (a ``DictConfig`` is a ``Mapping``), and library code stays config-free. A name that is
 not registered, or a key the constructor does not accept, raises :class:`UserError`
 listing what is known, so a typo in a config never passes silently.
 """
@@ -17,7 +19,8 @@ from __future__ import annotations
 
 import difflib
 import inspect
-from typing import Any, Callable, Dict, Iterable, Mapping, Optional
+from collections.abc import Mapping, Sequence
+from typing import Any, Callable, Dict, Iterable, Optional
 
 from l3d_app.errors import UserError
 
@@ -87,21 +90,23 @@ class Registry:
         """
         if cfg is None or "name" not in cfg:
             raise UserError(f"a {self.kind} config needs a 'name' (known: {', '.join(self.names())})")
-        kwargs = {str(k): _plain(v) for k, v in cfg.items() if k != "name"}
+        kwargs = {str(k): plain(v) for k, v in cfg.items() if k != "name"}
         kwargs.update(extra)
         fn = self.get(str(cfg["name"]))
         check_keywords(f"{self.kind} '{cfg['name']}'", fn, kwargs)
         return fn(**kwargs)
 
 
-def _plain(value: Any) -> Any:
-    """OmegaConf containers to plain Python lists/dicts; other values unchanged."""
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-    except ImportError:  # library use without OmegaConf installed
-        return value
-    if isinstance(value, (DictConfig, ListConfig)):
-        return OmegaConf.to_container(value, resolve=True)
+def plain(value: Any) -> Any:
+    """Nested mappings -> dicts and sequences -> lists (tuples stay tuples; strings and
+    bytes unchanged), all the way down; other values as they are. Duck-typed: an OmegaConf ``DictConfig`` /
+    ``ListConfig`` (resolved on access) becomes plain Python without importing OmegaConf."""
+    if isinstance(value, Mapping):
+        return {k: plain(v) for k, v in value.items()}
+    if isinstance(value, tuple):
+        return tuple(plain(v) for v in value)
+    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
+        return [plain(v) for v in value]
     return value
 
 

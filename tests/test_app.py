@@ -116,3 +116,56 @@ def test_render360_surfaces_and_point_clouds(compose, tmp_path, data):
     run_task(compose("image_size=32", "num_frames=2", *data), out_dir=tmp_path)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["coverage"] > 0.02 and (tmp_path / "turntable.gif").exists()
+
+
+@pytest.mark.parametrize("exc", [ValueError("bad radius -1 (must be > 0)\nsecond line"),
+                                 TypeError("expected a Mesh, got PointCloud")])
+def test_library_value_and_type_errors_are_one_line_exit_2(compose, tmp_path, monkeypatch, capsys, exc):
+    """Library code raises plain ValueError / TypeError; the app prints one line, exits 2,
+    writes no metrics; L3D_DEBUG=1 lets the exception (and its traceback) through."""
+    from l3d_app.app import run
+    from l3d_app.registry import TASKS
+
+    def failing_task(cfg, ctx):
+        raise exc
+
+    monkeypatch.setitem(TASKS._entries, "failing_probe", failing_task)
+    cfg = compose("image_size=16", "num_frames=2")
+    cfg.task_name = "failing_probe"
+    monkeypatch.delenv("L3D_DEBUG", raising=False)
+    with pytest.raises(SystemExit) as stop:
+        run(cfg, out_dir=tmp_path)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and str(exc).split("\n")[0] in err
+    assert type(exc).__name__ in err and "L3D_DEBUG=1" in err and "Traceback" not in err
+    assert not (tmp_path / "metrics.json").exists()
+    monkeypatch.setenv("L3D_DEBUG", "1")
+    with pytest.raises(type(exc)):
+        run(cfg, out_dir=tmp_path)
+
+
+def test_user_error_message_is_printed_as_is(compose, tmp_path, monkeypatch, capsys):
+    from l3d_app.app import run
+
+    monkeypatch.delenv("L3D_DEBUG", raising=False)
+    with pytest.raises(SystemExit) as stop:
+        run(compose("image_size=16", "num_frames=2", "+renderer.shadng=flat"), out_dir=tmp_path)
+    err = capsys.readouterr().err.strip()
+    assert stop.value.code == 2 and err.startswith("l3d_app: error: unknown key 'shadng'")
+    assert "Did you mean 'shading'" in err and "L3D_DEBUG" not in err
+
+
+def test_registry_builds_from_omegaconf_without_importing_it():
+    """Registry.build converts nested config containers to plain dicts / lists (duck-typed)."""
+    from omegaconf import OmegaConf
+
+    from l3d_app.registry import Registry, plain
+
+    reg = Registry("probe")
+    reg.register("echo")(lambda **kw: kw)
+    cfg = OmegaConf.create({"x": 2, "probe": {"name": "echo", "sizes": [1, "${x}"], "sub": {"a": (1, 2)}}})
+    out = reg.build(cfg.probe)
+    assert out == {"sizes": [1, 2], "sub": {"a": [1, 2]}}
+    assert type(out["sizes"]) is list and type(out["sub"]) is dict
+    assert plain({"t": (1, [2])}) == {"t": (1, [2])} and plain("abc") == "abc"

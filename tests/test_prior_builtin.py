@@ -127,11 +127,11 @@ def test_shipped_prior_samples_match_their_prompts(space):
 
 def test_train_prior_lr_schedule():
     from l3d_app.tasks.train_prior import _lr_factor
-    f = _lr_factor("cosine", 1000, 0)
+    f = _lr_factor("cosine", 1000, 0, 100, 0.05)
     assert abs(f(0) - 0.01) < 1e-9 and abs(f(49) - 0.5) < 1e-9
     assert abs(f(999) - 0.05) < 1e-9 and abs(f(500) - (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * 500 / 999)))) < 1e-9
-    lat = _lr_factor("cosine", 1000, 400)  # the latent U-Net's decay starts after the autoencoder
+    lat = _lr_factor("cosine", 1000, 400, 100, 0.05)  # the latent U-Net's decay starts after the autoencoder
     assert lat(399) == 1.0 and abs(lat(400) - 1.0) < 1e-9 and abs(lat(999) - 0.05) < 1e-9
-    assert _lr_factor("none", 1000, 0)(999) == 1.0
+    assert _lr_factor("none", 1000, 0, 100, 0.05)(999) == 1.0
     with pytest.raises(UserError):
-        _lr_factor("step", 1000, 0)
+        _lr_factor("step", 1000, 0, 100, 0.05)

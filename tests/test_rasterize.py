@@ -11,7 +11,7 @@ from l3d_app.registry import RENDERERS
 from l3d_app.render.mesh_renderer import DEFAULT_ALBEDO, MeshRenderer
 from l3d_app.render.rasterize import rasterize
 from l3d_app.render.shading import Lights, Material, interpolate, lambert, phong
-from l3d_app.render.textures import sample_texture
+from l3d_app.geometry.textures import sample_texture
 
 TIE_PX = 1e-4  # pixel centres this close to a triangle edge are ties (excluded)
 

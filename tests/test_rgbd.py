@@ -12,10 +12,11 @@ from l3d_app.data.scenes import builtin_scene
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras, look_at, look_at_cameras
 from l3d_app.geometry.mesh import Mesh
-from l3d_app.geometry.rgbd import (point_mesh_distance, rgbd_from_mesh, unproject_depth,
-                                   unproject_views)
+from l3d_app.geometry.point_mesh_distance import point_mesh_distance
+from l3d_app.geometry.rgbd import unproject_depth, unproject_views
 from l3d_app.registry import DATASETS
 from l3d_app.render.mesh_renderer import MeshRenderer
+from l3d_app.render.rgbd import rgbd_from_mesh
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -52,7 +53,7 @@ def test_point_mesh_distance_matches_dense_sampling():
     faces = torch.tensor([[0, 1, 2], [2, 3, 4], [1, 4, 5], [0, 0, 3]])  # last one degenerate
     mesh = Mesh(verts, faces)
     pts = torch.randn(50, 3, generator=g, dtype=torch.float64) * 1.5
-    d, f, bary = point_mesh_distance(pts, mesh, chunk=37)
+    d, f, bary = point_mesh_distance(pts, mesh)
     # dense barycentric grid on every face: an upper bound that converges to the truth
     n = 120
     i, j = torch.meshgrid(torch.arange(n + 1), torch.arange(n + 1), indexing="ij")

@@ -10,12 +10,14 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.render.mesh_renderer import MeshRenderer
-from l3d_app.tasks.sds_mesh import FieldTextureRenderer, TextureField, score_frames
+from l3d_app.metrics.prompt_match import score_frames
+from l3d_app.models.texture_field import TextureField
+from l3d_app.render.field_texture import FieldTextureRenderer
 from conftest import course_data
 from sds_task_runs import numbers_finite, run_metrics
 
 SMALL = ("iters=3", "eval_every=3", "eval_views=2", "num_frames=2", "batch_views=2", "batch_frames=2",
-         "gif_size=32", "tensorboard=false", "threads=1")
+         "turntable_size=32", "tensorboard=false", "threads=1")
 
 
 class _Linear(torch.nn.Module):
@@ -72,7 +74,7 @@ def _run(compose, tmp_path, *overrides):
 def test_sds_mesh_tiny_run_writes_outputs_with_finite_metrics(compose, tmp_path):
     m = _run(compose, tmp_path)
     assert (tmp_path / "sds_mesh.gif").exists() and (tmp_path / "after.png").exists()
-    assert m["iters"] == 3 and m["render_size"] == 32 and numbers_finite(m)
+    assert m["iters"] == 3 and m["image_size"] == 32 and numbers_finite(m)
     for key in ("match_rate", "match_rate_before", "colour_match_rate", "seconds", "seconds_per_iter", "n_params"):
         assert key in m
     assert m["match_rate_before"] == 0.0        # the grey start is no red square

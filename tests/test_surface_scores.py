@@ -10,9 +10,10 @@ from l3d_app.geometry import primitives as P
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.sampling import sample_surface
-from l3d_app.metrics.observed import observed_mask, true_depth_maps
-from l3d_app.metrics.point_mesh_distance import point_mesh_distance, point_triangle_distance
+from l3d_app.geometry.point_mesh_distance import point_mesh_distance, point_triangle_distance
+from l3d_app.metrics.observed import observed_mask
 from l3d_app.metrics.surface_scores import surface_scores
+from l3d_app.render.rgbd import true_depth_maps
 
 
 def _naive_point_triangle(p, a, b, c):
@@ -65,8 +66,13 @@ def test_point_mesh_distance_equals_brute_force_over_all_faces():
     p = pts.double().repeat_interleave(F, 0)
     t = tri.repeat(pts.shape[0], 1, 1)
     brute = point_triangle_distance(p, t[:, 0], t[:, 1], t[:, 2]).view(-1, F).amin(1)
-    got = point_mesh_distance(pts.double(), mesh)
+    res = point_mesh_distance(pts.double(), mesh)
+    got = res.distance
     assert torch.allclose(got, brute, atol=1e-12)
+    # the reported face and barycentrics give a point at exactly that distance
+    closest = torch.einsum("pk,pkc->pc", res.bary, tri[res.face])
+    assert torch.allclose((pts.double() - closest).norm(dim=-1), brute, atol=1e-12)
+    assert torch.allclose(res.bary.sum(-1), torch.ones_like(brute)) and (res.bary >= -1e-12).all()
     assert got[-50:].max() < 1e-6                       # samples on the surface
 
 
@@ -78,7 +84,7 @@ def test_point_mesh_distance_of_a_box_is_analytic():
     outside = q.clamp_min(0).norm(dim=-1)
     inside = -q.amax(dim=-1)
     expect = torch.where(q.amax(dim=-1) > 0, outside, inside)
-    assert torch.allclose(point_mesh_distance(pts, cube), expect, atol=1e-12)
+    assert torch.allclose(point_mesh_distance(pts, cube).distance, expect, atol=1e-12)
     with pytest.raises(UserError):
         point_mesh_distance(torch.zeros(3, 2), cube)
 
@@ -122,7 +128,9 @@ def test_surface_scores_observed_variant_ignores_the_unseen_bottom():
     cube = P.cube(1.0)
     # a "reconstruction" with a wrong bottom: the box extended 0.3 downwards
     guess = P.box((0.0, -0.15, 0.0), (1.0, 1.3, 1.0))
-    s = surface_scores(guess, cube, cameras=_ring_cameras(), n=6000, threshold=0.05)
+    cams = _ring_cameras()
+    s = surface_scores(guess, cube, cameras=cams, depth_maps=true_depth_maps(cube, cams, scale=4),
+                       n=6000, threshold=0.05)
     assert s["observed_fraction"] == pytest.approx(5 / 6, abs=0.02)
     assert s["chamfer"] > 0.05                         # the full score sees the wrong bottom
     assert s["chamfer_observed"] < 0.05 * s["chamfer"]  # the seen part is right

@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from l3d_app import catalog
+import l3d_app.data  # noqa: F401  (registers the data sources)
 from l3d_app.app import run_task
 from l3d_app.errors import UserError
 from l3d_app.geometry.mesh import Mesh
@@ -63,7 +63,7 @@ def test_bad_sampling_arguments():
     ("torus_implicit", Mesh), ("superquadric_implicit", Mesh), ("sphere_implicit", Mesh),
     ("box_implicit", Mesh), ("union_implicit", Mesh)])
 def test_data_configs_build(compose, name, kind):
-    catalog.load_all()
+
     cfg = compose(f"data={name}")
     overrides = {"num_samples": 500} if kind is PointCloud else {"resolution": 24}
     data = DATASETS.build({**cfg.data, **overrides}, device=torch.device("cpu"))

@@ -36,3 +36,16 @@ def test_optuna_sweepers_compose(sweeper, param):
     cfg = compose_hydra(f"hydra/sweeper={sweeper}", "objective=psnr")
     assert param in cfg.hydra.sweeper.params and cfg.hydra.sweeper.direction == "maximize"
     assert cfg.objective == "psnr"
+
+
+def test_experiment_nerf_baseline_is_the_task_alias(compose):
+    """`experiment=nerf_baseline` (the variant filed as an experiment) composes exactly the
+    config `task=nerf_baseline` does, and command-line knobs still override it."""
+    from omegaconf import OmegaConf
+
+    as_task = OmegaConf.to_container(compose("task=nerf_baseline"), resolve=False)
+    as_experiment = OmegaConf.to_container(compose("experiment=nerf_baseline"), resolve=False)
+    assert as_experiment == as_task
+    assert as_experiment["task_name"] == "train_nerf" and as_experiment["n_samples"] == 128
+    assert compose("experiment=nerf_baseline", "iters=5").iters == 5
+    assert compose().task_name == "render360"          # no experiment by default

@@ -1,6 +1,6 @@
 import torch
 
-from l3d_app.render.textures import sample_texture, sample_texture_indexed
+from l3d_app.geometry.textures import sample_texture, sample_texture_indexed
 
 
 def test_grid_sample_and_gather_paths_agree_inside_and_outside_the_unit_square():

@@ -5,7 +5,7 @@
 images), rescaled to unit standard deviation as Stable Diffusion does with its VAE.
 
 Prompts are parsed into (colour, shape, background) slots
-(:func:`l3d_app.data.prompt_images.parse_prompt`); each slot has a learned embedding with an
+(:func:`l3d_app.prompt_vocab.parse_prompt`); each slot has a learned embedding with an
 extra "null" row. The unconditional embedding is all-null; training drops slots at random
 (classifier-free-guidance dropout) so partial prompts ("a red circle") are in distribution.
 
@@ -22,7 +22,7 @@ from typing import Any, Dict, Optional
 import torch
 import torch.nn as nn
 
-from l3d_app.data.prompt_images import ANY, BACKGROUNDS, COLOURS, SHAPES, parse_prompt
+from l3d_app.prompt_vocab import ANY, BACKGROUNDS, COLOURS, SHAPES, parse_prompt
 from l3d_app.diffusion.autoencoder import TinyAutoencoder
 from l3d_app.diffusion.prior import DiffusionPrior, PromptEmbedding
 from l3d_app.diffusion.registry import PRIORS

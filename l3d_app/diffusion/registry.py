@@ -3,7 +3,7 @@
 ``PRIORS.build(cfg.prior, device=ctx.device)`` returns a frozen
 :class:`~l3d_app.diffusion.prior.DiffusionPrior` (``builtin`` is registered by
 :mod:`l3d_app.diffusion.builtin_prior`; adapters for other priors register themselves the
-same way and are listed in :mod:`l3d_app.catalog`).
+same way; :mod:`l3d_app.diffusion` imports them).
 """
 
 from __future__ import annotations

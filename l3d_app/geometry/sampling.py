@@ -23,6 +23,7 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.pointcloud import PointCloud
+from l3d_app.geometry.textures import sample_texture
 
 # Faces with area <= _REL_DEGENERATE * (largest face area) count as degenerate: this only
 # absorbs round-off in the cross product of (nearly) collinear edges.
@@ -111,8 +112,6 @@ def sample_colors(mesh: Mesh, samples: SurfaceSamples) -> torch.Tensor:
         UserError: if the mesh has neither a texture nor vertex colours.
     """
     if mesh.has_texture:
-        from l3d_app.render.textures import sample_texture
-
         uv = _interpolate(mesh.verts_uvs, mesh.faces_uvs, samples.face_index, samples.barycentrics)
         return sample_texture(mesh.texture, uv.to(mesh.texture.dtype))
     if mesh.vert_colors is not None:

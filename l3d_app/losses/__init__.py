@@ -1,0 +1,15 @@
+"""Losses: eikonal, mesh regularisers, NeRF regularisers, occupancy BCE, score distillation."""
+
+from l3d_app.exports import lazy_exports
+
+# Registering modules: importing the package completes its registries.
+from l3d_app.losses import occupancy, mesh_regularizers  # noqa: F401,E402
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "eikonal_loss": "eikonal",
+    "laplacian_smoothing": "mesh_regularizers",
+    "normal_consistency": "mesh_regularizers",
+    "edge_length": "mesh_regularizers",
+    "bce_with_logits": "occupancy",
+    "sds_loss": "sds",
+})

@@ -6,9 +6,10 @@ of an object on its stand, the inside of a joint). Benchmarks therefore score ag
 counts as observed when at least one camera sees it: it projects inside that camera's image,
 in front of the camera, and no farther than the true surface's depth at that pixel plus a
 tolerance; and, when the point's surface normal is given (points sampled on the true
-surface), the surface faces that camera. The true depth maps come from our own rasteriser
-(:class:`~l3d_app.render.mesh_renderer.MeshRenderer`) at ``scale`` times the cameras'
-resolution (finer pixels: a smaller tolerance suffices on thin parts and silhouettes).
+surface), the surface faces that camera. The true depth maps are an input, rendered by the caller
+(:func:`l3d_app.render.rgbd.true_depth_maps`, our own rasteriser at ``scale`` times the
+cameras' resolution: finer pixels, so a smaller tolerance suffices on thin parts and
+silhouettes); metrics never render.
 The facing test matters at grazing views: from a camera a little above the underside's
 plane, the whole underside projects onto a one-pixel sliver along the bottom edge, where a
 depth lookup alone is ambiguous.
@@ -26,24 +27,6 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
-from l3d_app.geometry.mesh import Mesh
-from l3d_app.render.mesh_renderer import MeshRenderer, scale_cameras
-
-
-@torch.no_grad()
-def true_depth_maps(mesh: Mesh, cameras: Cameras, scale: int = 4, batch: int = 8) -> torch.Tensor:
-    """(B, scale*H, scale*W) camera-Z depth (world units) of ``mesh`` seen by ``cameras``,
-    +inf where no face covers the pixel centre."""
-    if int(scale) < 1:
-        raise UserError(f"observed: scale must be an integer >= 1, got {scale}")
-    cams = scale_cameras(cameras, int(scale)) if int(scale) > 1 else cameras
-    renderer = MeshRenderer(shading="unlit", antialias=1)
-    maps = []
-    for s in range(0, len(cams), int(batch)):
-        out = renderer(mesh, cams[s:s + int(batch)])
-        depth = torch.where(out["alpha"] > 0, out["depth"], torch.full_like(out["depth"], float("inf")))
-        maps.append(depth)
-    return torch.cat(maps)
 
 
 @torch.no_grad()
@@ -55,7 +38,8 @@ def observed_mask(points: torch.Tensor, cameras: Cameras, depth_maps: torch.Tens
     Args:
         points: (N, 3) world points.
         cameras: B cameras (at their own resolution; ``depth_maps`` may be finer).
-        depth_maps: (B, h, w) from :func:`true_depth_maps` (h / H = w / W = the scale).
+        depth_maps: (B, h, w) camera Z of the true surface, +inf where empty
+            (:func:`l3d_app.render.rgbd.true_depth_maps`; h / H = w / W = the scale).
         tolerance: world units a point may lie behind the true depth and still count.
         normals: optional (N, 3) outward normals of the points' surface: a camera then
             counts only if the surface faces it (``n . (C - p) > 0``).

@@ -24,8 +24,9 @@ from typing import Dict, Optional
 import torch
 import torch.nn.functional as F
 
-from l3d_app.data.prompt_images import (ANY, BACKGROUND_NAMES, BACKGROUNDS, COLOUR_NAMES, COLOURS,
-                                        SHAPES, parse_prompt)
+from l3d_app.errors import UserError
+from l3d_app.prompt_vocab import (ANY, BACKGROUND_NAMES, BACKGROUNDS, COLOUR_NAMES, COLOURS,
+                                 SHAPES, parse_prompt)
 
 FILL_RATIOS = torch.tensor([math.pi / 4, 1.0, 0.5])  # circle, square, triangle (SHAPES order)
 
@@ -119,3 +120,27 @@ def match_rate(images: torch.Tensor, prompts) -> float:
     """Fraction of images (B, 3, H, W) or (B, H, W, 3) whose verdict matches their prompt."""
     hits = [check_image(img, p).match for img, p in zip(images, prompts)]
     return sum(hits) / max(len(hits), 1)
+
+
+def check_prompt_for_checker(prompt: str):
+    """The prompt's (colour, shape, background) slots, or None when the checker cannot read it."""
+    try:
+        return parse_prompt(prompt)
+    except UserError:
+        return None
+
+
+def score_frames(frames: torch.Tensor, prompt: str) -> Dict[str, Optional[float]]:
+    """Checker verdicts over frames (N, H, W, 3): match rate and per-slot rates (None if the
+    prompt is outside the checker's vocabulary, e.g. a free-text Stable Diffusion prompt)."""
+    keys = ("match", "colour_ok", "shape_ok", "background_ok")
+    if check_prompt_for_checker(prompt) is None:
+        return {k: None for k in keys}
+    verdicts = [check_image(f, prompt) for f in frames]
+    return {k: sum(bool(getattr(v, k)) for v in verdicts) / max(len(verdicts), 1) for k in keys}
+
+
+def score_metrics(score: Dict[str, Optional[float]]) -> Dict[str, Optional[float]]:
+    """:func:`score_frames` output as metrics.json keys."""
+    return {"match_rate": score["match"], "colour_match_rate": score["colour_ok"],
+            "shape_match_rate": score["shape_ok"], "background_match_rate": score["background_ok"]}

@@ -2,7 +2,7 @@
 true surface and on the part the input cameras observe.
 
 Definitions (world units; ``P`` = ``n`` area-uniform samples of the prediction, ``G`` = ``n``
-of the truth, distances EXACT point-to-mesh (:mod:`~l3d_app.metrics.point_mesh_distance`),
+of the truth, distances EXACT point-to-mesh (:mod:`~l3d_app.geometry.point_mesh_distance`),
 so there is no sampling floor):
 
 - accuracy ``acc(p) = d(p, true mesh)``, completeness ``comp(g) = d(g, predicted mesh)``
@@ -29,8 +29,8 @@ from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.sampling import sample_surface
 from l3d_app.metrics.chamfer import nearest_neighbors
-from l3d_app.metrics.observed import observed_mask, true_depth_maps
-from l3d_app.metrics.point_mesh_distance import point_mesh_distance
+from l3d_app.geometry.point_mesh_distance import point_mesh_distance
+from l3d_app.metrics.observed import observed_mask
 
 
 def _prf(acc: torch.Tensor, comp: torch.Tensor, threshold: float) -> Dict[str, float]:
@@ -41,23 +41,34 @@ def _prf(acc: torch.Tensor, comp: torch.Tensor, threshold: float) -> Dict[str, f
 
 @torch.no_grad()
 def surface_scores(pred: Mesh, truth: Mesh, cameras: Optional[Cameras] = None, n: int = 10000,
-                   threshold: float = 0.05, seed: int = 0, depth_scale: int = 4,
+                   threshold: float = 0.05, seed: int = 0, depth_maps: Optional[torch.Tensor] = None,
                    tolerance: float = 0.01) -> Dict[str, float]:
     """Chamfer / F-score of mesh ``pred`` against mesh ``truth`` (see the module docstring);
-    with ``cameras`` (the input views) also the observed-surface variants. CPU, float64."""
+    with ``cameras`` (the input views) and ``depth_maps`` (B, h, w), the true surface's depth
+    seen by them (:func:`l3d_app.render.rgbd.true_depth_maps`, e.g. at 4x their resolution),
+    also the observed-surface variants. CPU, float64.
+
+    ``cameras`` without ``depth_maps`` still works for now (the depth is rendered here at 4x)
+    but is deprecated: metrics do not render. It goes once volsdf passes ``depth_maps``
+    (tests/test_architecture.py lists it as a known violation).
+    """
+    if cameras is not None and depth_maps is None:
+        from l3d_app.render.rgbd import true_depth_maps  # TEMPORARY bridge for tasks/volsdf.py
+
+        depth_maps = true_depth_maps(truth.to("cpu"), cameras.to("cpu"), scale=4)
     pred, truth = pred.to("cpu"), truth.to("cpu")
     gen = torch.Generator().manual_seed(int(seed))
     ps = sample_surface(pred, int(n), generator=gen).points
     gs = sample_surface(truth, int(n), generator=gen)
-    acc = point_mesh_distance(ps, truth)
-    comp = point_mesh_distance(gs.points, pred)
+    acc = point_mesh_distance(ps, truth).distance
+    comp = point_mesh_distance(gs.points, pred).distance
     diag = float((truth.verts.max(0).values - truth.verts.min(0).values).norm())
     out = {"chamfer": float(acc.mean() + comp.mean()), "accuracy_distance": float(acc.mean()),
            "completeness_distance": float(comp.mean()), **_prf(acc, comp, threshold)}
     out["chamfer_rel_diag"] = out["chamfer"] / diag
     if cameras is not None:
         cams = cameras.to("cpu")
-        depth = true_depth_maps(truth, cams, scale=int(depth_scale))
+        depth = depth_maps.to("cpu")
         normals = truth.face_normals()[gs.face_index]
         seen_g = observed_mask(gs.points, cams, depth, float(tolerance), normals=normals)
         seen_p = seen_g[nearest_neighbors(ps, gs.points)]

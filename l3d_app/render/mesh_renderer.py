@@ -17,7 +17,7 @@ from l3d_app.geometry.mesh import Mesh
 from l3d_app.registry import RENDERERS
 from l3d_app.render.rasterize import project_vertices, rasterize_projected
 from l3d_app.render.shading import Lights, Material, interpolate_vertices, normalize, phong
-from l3d_app.render.textures import sample_texture_t
+from l3d_app.geometry.textures import sample_texture_t
 
 SHADINGS = ("phong", "lambert", "flat", "unlit")
 DEFAULT_ALBEDO = (0.85, 0.85, 0.85)  # grey-white for meshes without colours or texture

@@ -72,7 +72,7 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.registry import RENDERERS
-from l3d_app.render.textures import sample_texture_indexed
+from l3d_app.geometry.textures import sample_texture_indexed
 
 __all__ = ["soft_rasterize", "influence_radius", "SoftMeshRenderer"]
 
@@ -170,7 +170,7 @@ def soft_rasterize(cams: Cameras, verts: torch.Tensor, faces: torch.Tensor, *,
         vert_colors: optional (V, 3) or (B, V, 3) per-vertex RGB, interpolated.
         face_colors: optional (F, 3) or (B, F, 3) per-face RGB, constant per face.
         texture: optional (Ht, Wt, 3) or (B, Ht, Wt, 3) image, top row first, with
-            ``verts_uvs`` (T, 2) (v up) and ``faces_uvs`` (F, 3); see :func:`l3d_app.render.textures.sample_texture_indexed`.
+            ``verts_uvs`` (T, 2) (v up) and ``faces_uvs`` (F, 3); see :func:`l3d_app.geometry.textures.sample_texture_indexed`.
             At most one colour source may be given; with none, only the silhouette is made.
         sigma: edge sharpness, NDC^2 units (smaller = sharper, ~ (pixel size)^2 is sharp;
             the pixel size in NDC is ``2 / min(H, W)``). SoftRas default 1e-4.

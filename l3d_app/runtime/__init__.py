@@ -1,0 +1,13 @@
+"""Run-time services below every other layer: device, seeding and random draws, the
+training loop, checkpoints, logging, progress bars, timers, media and file helpers."""
+
+from l3d_app.exports import lazy_exports
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "RunContext": "context",
+    "Trainable": "training",
+    "train": "training",
+    "log_test": "training",
+    "resolve_device": "device",
+    "seed_everything": "seed",
+})

@@ -1,5 +1,6 @@
 """Pieces shared by the fitting tasks (fit_vox, fit_point, fit_mesh): the target, the
-side-by-side turntable of fit and target, and the common knob checks."""
+held-out evaluation generator, the side-by-side turntable of fit and target, and the
+common knob checks."""
 
 from __future__ import annotations
 
@@ -23,6 +24,12 @@ def load_target_mesh(cfg, device) -> Mesh:
     if not isinstance(mesh, Mesh):
         raise UserError("fitting tasks need a mesh data source (data=builtin, data=mesh data.path=FILE, ...)")
     return mesh
+
+
+def eval_generator(cfg, device) -> torch.Generator:
+    """A generator for held-out evaluation samples, seeded ``seed + eval_seed_offset``: a
+    stream independent of the training draws, the same for every run with that seed."""
+    return torch.Generator(device=device).manual_seed(int(cfg.seed) + int(cfg.eval_seed_offset))
 
 
 def check_fit_knobs(cfg, *extra: str) -> None:

@@ -25,8 +25,8 @@ from l3d_app.metrics.chamfer import chamfer_distance
 from l3d_app.metrics.fscore import fscore
 from l3d_app.registry import TASKS
 from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.fit_common import check_fit_knobs, load_target_mesh, side_by_side_turntable
-from l3d_app.tasks.fit_point import eval_generator
+from l3d_app.tasks.fit_common import (check_fit_knobs, eval_generator, load_target_mesh,
+                                      side_by_side_turntable)
 
 
 @TASKS.register("fit_mesh")
@@ -35,7 +35,7 @@ def fit_mesh(cfg, ctx) -> dict:
     check_fit_knobs(cfg, "num_samples", "eval_samples", "init_radius", "lr", "eval_every", "f1_threshold")
     target_mesh = load_target_mesh(cfg, ctx.device)
     t, n_eval = float(cfg.f1_threshold), int(cfg.eval_samples)
-    gen_eval = eval_generator(cfg.seed, ctx.device)
+    gen_eval = eval_generator(cfg, ctx.device)
     held_out = sample_points_on_mesh(target_mesh, n_eval, gen_eval).points
     baseline = float(chamfer_distance(held_out, sample_points_on_mesh(target_mesh, n_eval, gen_eval).points))
 

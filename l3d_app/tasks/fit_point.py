@@ -19,7 +19,8 @@ from l3d_app.metrics.chamfer import chamfer_distance
 from l3d_app.metrics.fscore import fscore
 from l3d_app.registry import TASKS
 from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.fit_common import check_fit_knobs, load_target_mesh, side_by_side_turntable
+from l3d_app.tasks.fit_common import (check_fit_knobs, eval_generator, load_target_mesh,
+                                      side_by_side_turntable)
 
 
 def random_ball(n: int, radius: float, generator: torch.Generator, device=None) -> torch.Tensor:
@@ -29,18 +30,13 @@ def random_ball(n: int, radius: float, generator: torch.Generator, device=None) 
     return d * r
 
 
-def eval_generator(seed: int, device) -> torch.Generator:
-    """A generator for held-out evaluation samples, independent of the training stream."""
-    return torch.Generator(device=device).manual_seed(int(seed) + 7919)
-
-
 @TASKS.register("fit_point")
 def fit_point(cfg, ctx) -> dict:
     """Fit, evaluate chamfer / F1 every ``eval_every`` steps, write the gif; return the metrics."""
     check_fit_knobs(cfg, "num_points", "init_radius", "lr", "eval_every", "f1_threshold")
     target_mesh = load_target_mesh(cfg, ctx.device)
     n, t = int(cfg.num_points), float(cfg.f1_threshold)
-    gen_eval = eval_generator(cfg.seed, ctx.device)
+    gen_eval = eval_generator(cfg, ctx.device)
     held_out = sample_points_on_mesh(target_mesh, n, gen_eval).points
     other = sample_points_on_mesh(target_mesh, n, gen_eval).points
     baseline = float(chamfer_distance(held_out, other))

@@ -1,4 +1,5 @@
-"""Pieces shared by the built-in-prior tasks (train_prior, sds_image): prompt lists, grids."""
+"""Pieces shared by the prior tasks (train_prior, sds_image, sds_mesh, sds_nerf): the
+configured prior, prompt lists, image grids."""
 
 from __future__ import annotations
 
@@ -6,7 +7,8 @@ from typing import List
 
 import torch
 
-from l3d_app.data.prompt_images import BACKGROUND_NAMES, COLOUR_NAMES, SHAPES
+from l3d_app.diffusion.registry import PRIORS
+from l3d_app.prompt_vocab import BACKGROUND_NAMES, COLOUR_NAMES, SHAPES
 
 
 def full_prompts(n_per_shape: int = 0) -> List[str]:
@@ -32,3 +34,8 @@ def image_grid(images: torch.Tensor, cols: int, pad: int = 1, value: float = 1.0
     canvas[:N, :, :H, :W] = images.detach().cpu()
     grid = canvas.view(rows, cols, C, H + pad, W + pad).permute(0, 3, 1, 4, 2)
     return grid.reshape(rows * (H + pad), cols * (W + pad), C)[:-pad or None, :-pad or None]
+
+
+def load_prior(cfg, device):
+    """The configured prior (``prior=builtin`` | ``prior=stable_diffusion prior.path=DIR``), frozen."""
+    return PRIORS.build(cfg.prior, device=device)

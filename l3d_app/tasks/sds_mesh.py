@@ -1,10 +1,10 @@
 """sds_mesh: paint a fixed mesh from a text prompt by score distillation (SDS).
 
-Model: a texture *field*, ``rgb = sigmoid(MLP(harmonic(p)))`` of the surface point ``p``
+Model: a texture *field* (:class:`~l3d_app.models.texture_field.TextureField`), ``rgb = sigmoid(MLP(harmonic(p)))`` of the surface point ``p``
 (world units), so the texture has no UV seams and its resolution does not depend on the
 mesh's vertex density. Rendering: the hard rasteriser of ``renderer=mesh`` (visibility is
 fixed, the mesh does not move) with the field evaluated at every covered pixel's
-interpolated surface point (:class:`FieldTextureRenderer`); shading ``unlit`` (flat colour,
+interpolated surface point (:class:`~l3d_app.render.field_texture.FieldTextureRenderer`); shading ``unlit`` (flat colour,
 like the built-in prior's images) or ``lambert``/``phong`` with a headlight. Only the
 field's parameters are trained; gradients reach them through the per-pixel albedo.
 
@@ -22,94 +22,25 @@ seconds per iteration. Outputs: ``sds_mesh.gif`` (turntable, before | after),
 
 from __future__ import annotations
 
-from typing import Dict, Optional
+from typing import Dict
 
 import torch
 
-from l3d_app.data.prompt_images import parse_prompt
-from l3d_app.diffusion.registry import PRIORS
 from l3d_app.diffusion.view_prompts import sample_orbit_cameras
 from l3d_app.errors import UserError
 from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.losses.sds import rgb_to_model_space, sds_loss
-from l3d_app.metrics.prompt_match import check_image
-from l3d_app.models.encodings import HarmonicEncoding
+from l3d_app.metrics.prompt_match import score_frames, score_metrics
+from l3d_app.models.texture_field import TextureField
 from l3d_app.registry import DATASETS, TASKS
-from l3d_app.render.mesh_renderer import MeshRenderer
-from l3d_app.render.shading import interpolate_vertices
+from l3d_app.render.field_texture import FieldTextureRenderer
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import render_frames, require_positive
+from l3d_app.tasks.prior_common import load_prior
 
-
-class TextureField(torch.nn.Module):
-    """Surface point (N, 3) world units -> RGB (N, 3) in (0, 1).
-
-    ``harmonic(p)`` with ``n_frequencies`` octaves -> ``layers`` ReLU layers of ``hidden``
-    -> sigmoid. The output layer starts at zero, so the initial texture is uniform grey 0.5.
-    """
-
-    def __init__(self, n_frequencies: int = 4, hidden: int = 64, layers: int = 2):
-        super().__init__()
-        if hidden < 1 or layers < 1:
-            raise UserError(f"texture field needs hidden >= 1 and layers >= 1, got {hidden}, {layers}")
-        self.encoding = HarmonicEncoding(3, n_frequencies)
-        mods, d = [], self.encoding.out_dim
-        for _ in range(int(layers)):
-            mods += [torch.nn.Linear(d, hidden), torch.nn.ReLU()]
-            d = hidden
-        head = torch.nn.Linear(d, 3)
-        torch.nn.init.zeros_(head.weight)
-        torch.nn.init.zeros_(head.bias)
-        self.mlp = torch.nn.Sequential(*mods, head)
-
-    def forward(self, points: torch.Tensor) -> torch.Tensor:
-        return torch.sigmoid(self.mlp(self.encoding(points)))
-
-
-class FieldTextureRenderer(MeshRenderer):
-    """:class:`MeshRenderer` whose albedo is ``field(surface point)`` at each covered pixel.
-
-    Differentiable w.r.t. the field's parameters (not the geometry or the visibility).
-    """
-
-    def __init__(self, field: torch.nn.Module, **kwargs):
-        super().__init__(**kwargs)
-        self.field = field
-
-    def albedo(self, mesh: Mesh, faces, corners, bary_t: torch.Tensor) -> torch.Tensor:
-        points = interpolate_vertices(mesh.verts.t().to(bary_t.dtype), corners, bary_t)  # (3, P)
-        return self.field(points.t()).t()
-
-
-def check_prompt_for_checker(prompt: str):
-    """The prompt's (colour, shape, background) slots, or None when the checker cannot read it."""
-    try:
-        return parse_prompt(prompt)
-    except UserError:
-        return None
-
-
-def score_frames(frames: torch.Tensor, prompt: str) -> Dict[str, Optional[float]]:
-    """Checker verdicts over frames (N, H, W, 3): match rate and per-slot rates (None if the
-    prompt is outside the checker's vocabulary, e.g. a free-text Stable Diffusion prompt)."""
-    keys = ("match", "colour_ok", "shape_ok", "background_ok")
-    if check_prompt_for_checker(prompt) is None:
-        return {k: None for k in keys}
-    verdicts = [check_image(f, prompt) for f in frames]
-    return {k: sum(bool(getattr(v, k)) for v in verdicts) / max(len(verdicts), 1) for k in keys}
-
-
-def score_metrics(score: Dict[str, Optional[float]]) -> Dict[str, Optional[float]]:
-    """:func:`score_frames` output as metrics.json keys."""
-    return {"match_rate": score["match"], "colour_match_rate": score["colour_ok"],
-            "shape_match_rate": score["shape_ok"], "background_match_rate": score["background_ok"]}
-
-
-def load_prior(cfg, device):
-    """The configured prior (``prior=builtin`` | ``prior=stable_diffusion prior.path=DIR``), frozen."""
-    return PRIORS.build(cfg.prior, device=device)
+__all__ = ["sds_mesh", "load_prior", "score_frames", "score_metrics"]  # the last three: sds_nerf's old import path
 
 
 @TASKS.register("sds_mesh")
@@ -122,13 +53,13 @@ def sds_mesh(cfg, ctx) -> dict:
     prior = load_prior(cfg, ctx.device)
     prompt = str(cfg.prompt)
     embedding = prior.embed_prompt(prompt)
-    size = int(cfg.render_size) if int(cfg.render_size) > 0 else int(prior.image_size)
+    size = int(cfg.image_size) if int(cfg.image_size) > 0 else int(prior.image_size)
     field = TextureField(int(cfg.field.n_frequencies), int(cfg.field.hidden), int(cfg.field.layers)).to(ctx.device)
     renderer = FieldTextureRenderer(field, shading=str(cfg.shading), background=list(cfg.background),
                                     antialias=int(cfg.antialias))
     dist_range, elev_range, fov_range = (list(cfg[k]) for k in ("distance_range", "elevation_range", "fov_range"))
     cams_360 = turntable(int(cfg.num_frames), float(cfg.eval_distance), float(cfg.eval_elevation),
-                         float(cfg.eval_fov), int(cfg.gif_size) or size, device=ctx.device)
+                         float(cfg.eval_fov), int(cfg.turntable_size) or size, device=ctx.device)
     n_params = sum(p.numel() for p in field.parameters())
 
     def render_turntable(desc: str) -> torch.Tensor:
@@ -181,8 +112,8 @@ def sds_mesh(cfg, ctx) -> dict:
         "n_params": n_params,
         "train_seconds": round(train_s, 4),
         "seconds_per_iter": round(train_s / max(result.step, 1), 5),
-        "render_size": size,
-        "gif_size": int(cfg.gif_size) or size,
+        "image_size": size,
+        "turntable_size": int(cfg.turntable_size) or size,
         "skipped_steps": result.skipped_steps,
         "history": result.history_rows(),
         "interrupted": result.interrupted,

@@ -79,7 +79,7 @@ def surface_tradeoff(cfg, ctx) -> dict:
     seed = int(cfg.get("seed", 0))
 
     sdf = Torus(R, r)
-    reference = torus_points(n_ref, R, r, torch.Generator().manual_seed(seed + 1_000_003),
+    reference = torus_points(n_ref, R, r, torch.Generator().manual_seed(seed + int(cfg.reference_seed_offset)),
                              area_uniform=True).points
     # warm-up so the first timed setting does not pay one-off allocation costs
     torus_points(16, R, r, torch.Generator().manual_seed(0))

@@ -58,12 +58,13 @@ def _ema_update(ema: torch.nn.Module, live: torch.nn.Module, decay: float) -> No
         e.copy_(b)
 
 
-def _lr_factor(decay: str, iters: int, ae_iters: int):
-    """lr multiplier of step i: 100-step warm-up, then constant (``none``) or a cosine fall
-    to 5% at the last step (``cosine``); the latent U-Net's schedule starts after ``ae_iters``."""
+def _lr_factor(decay: str, iters: int, ae_iters: int, warmup: int, final: float):
+    """lr multiplier of step i: ``warmup``-step warm-up, then constant (``none``) or a cosine
+    fall to ``final`` x lr at the last step (``cosine``); the latent U-Net's schedule starts
+    after ``ae_iters``."""
     if decay not in ("none", "cosine"):
         raise UserError(f"lr_decay must be 'none' or 'cosine', got '{decay}'")
-    return warmup_cosine(100, ae_iters, iters - 1, 0.05 if decay == "cosine" else 1.0)
+    return warmup_cosine(int(warmup), ae_iters, iters - 1, float(final) if decay == "cosine" else 1.0)
 
 
 @TASKS.register("train_prior")
@@ -81,7 +82,8 @@ def train_prior(cfg, ctx) -> dict:
     ema = {s: copy.deepcopy(m).requires_grad_(False) for s, m in live.items()}
     params = [p for m in live.values() for p in m.parameters()]
     opt = torch.optim.AdamW(params, lr=float(cfg.lr), weight_decay=0.0)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_factor(str(cfg.lr_decay), int(cfg.iters), ae_iters))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_factor(str(cfg.lr_decay), int(cfg.iters), ae_iters,
+                                                          int(cfg.warmup_steps), float(cfg.lr_final_fraction)))
     modules = {**live, **{f"{s}_ema": m for s, m in ema.items()}}
     trainable = Trainable(modules, opt, schedulers=[sched])
     prompts = full_prompts(max(1, int(cfg.eval_prompts) // 3))
@@ -99,7 +101,8 @@ def train_prior(cfg, ctx) -> dict:
             else:
                 if i == ae_iters or float(lat.latent_scale) == 1.0:
                     with torch.no_grad():
-                        ref, _ = prompt_batch(256, S, torch.Generator(dev).manual_seed(1234), dev)
+                        ref_gen = torch.Generator(dev).manual_seed(int(cfg.latent_scale_seed))
+                        ref, _ = prompt_batch(int(cfg.latent_scale_batch), S, ref_gen, dev)
                         lat.latent_scale.fill_(1.0 / float(lat.autoencoder.encode(ref).std()))
                 logs["latent"] = lat.diffusion_loss(images, labels, gen, float(cfg.slot_drop), float(cfg.all_drop))
             total = total + logs.get("ae", 0.0) + logs.get("latent", 0.0)
@@ -109,13 +112,14 @@ def train_prior(cfg, ctx) -> dict:
     def after(i: int) -> None:
         for s in spaces:
             # the autoencoder is copied, not averaged: the latent U-Net must see the frozen one
-            _ema_update(ema[s], live[s], 0.0 if i < ae_iters + 10 and s == "latent" else float(cfg.ema_decay))
+            copying = s == "latent" and i < ae_iters + int(cfg.ema_copy_steps)
+            _ema_update(ema[s], live[s], 0.0 if copying else float(cfg.ema_decay))
 
     samples: Dict[str, torch.Tensor] = {}
 
     def evaluate(_i: int) -> Dict[str, float]:
         out = {}
-        g = torch.Generator(dev).manual_seed(int(cfg.seed) + 7)
+        g = torch.Generator(dev).manual_seed(int(cfg.seed) + int(cfg.eval_seed_offset))
         for s in spaces:
             if s == "latent" and _i <= ae_iters:
                 continue
