@@ -130,8 +130,13 @@ def test_volsdf_neus_variant_and_knobs_compose(compose, tmp_path):
     hist = [h["psnr"] for h in m["history"]]
     assert m["density"] == "neus" and np.isfinite(m["psnr"]) and len(hist) == 3
     assert hist[-1] > hist[0] + 0.25, hist
-    with pytest.raises(UserError):
-        run_task(compose("task=volsdf", *TINY, "density=unisurf"), out_dir=tmp_path / "bad")
+    from hydra.errors import MissingConfigException
+    from l3d_app.registry import DENSITIES
+
+    with pytest.raises(MissingConfigException, match="unisurf"):      # no conf/density/unisurf.yaml
+        compose("task=volsdf", *TINY, "density=unisurf")
+    with pytest.raises(UserError, match="unisurf"):                   # nor a registered density
+        DENSITIES.build({"name": "unisurf"})
 
 
 def test_neural_sdf_fits_the_builtin_torus(compose, tmp_path):

@@ -247,8 +247,6 @@ def test_volume_renderer_sphere_depth_and_background():
 # ------------------------------------------------- the one rendering function vs a naive per-ray loop
 def _naive_render(t0, t1, rays, n_rays, sigma, rgb, background, alpha_mode=False):
     """Float64 reference: front-to-back product per ray, one Python loop (the test's own code)."""
-    color = [background.clone() for _ in range(n_rays)]
-    depth, opacity = [0.0] * n_rays, [0.0] * n_rays
     out_c, out_d, out_o = [], [], []
     for r in range(n_rays):
         trans, c, dep = torch.ones((), dtype=D), torch.zeros(3, dtype=D), torch.zeros((), dtype=D)

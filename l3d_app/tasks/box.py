@@ -26,16 +26,17 @@ from typing import Dict
 
 import torch
 
-from l3d_app.errors import UserError
-from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.metrics.image import psnr
 from l3d_app.registry import DATASETS, SAMPLERS, TASKS
 from l3d_app.models.sdf_box import SDFBox
+from l3d_app.render.evaluation import render_views
+from l3d_app.render.turntable import data_up, orbit_cameras, write_turntable
 from l3d_app.render.volume import render_rays_chunked
 from l3d_app.runtime.optim import build_optimizer
-from l3d_app.runtime.media import save_gif, save_png
+from l3d_app.runtime.media import save_png
 from l3d_app.runtime.paths import resolve_path
+from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import require_positive
 
@@ -61,8 +62,7 @@ def box(cfg, ctx) -> dict:
     chunk = int(cfg.chunk)
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
-        idx = torch.randint(0, n_pix, (int(cfg.batch_rays),), generator=ctx.generator,
-                            device=ctx.generator.device).to(ctx.device)
+        idx = randint(0, n_pix, (int(cfg.batch_rays),), ctx.generator, ctx.device)
         pred = model.render_rays(flat_o[idx], flat_d[idx], sampler)["color"]
         return {"loss": ((pred - flat_rgb[idx]) ** 2).mean()}
 
@@ -84,7 +84,7 @@ def box(cfg, ctx) -> dict:
         final_psnr = float(psnr(final, target))
     save_png(ctx.path("fit_views.png"), torch.cat([torch.cat(list(final), 1), torch.cat(list(target), 1)], 0))
     if int(cfg.gif_frames) > 0:
-        _turntable(cfg, ctx, model)
+        _turntable(cfg, ctx, model, data)
     center, size = model.center.detach().cpu(), model.size.detach().cpu()
     return {
         "box_center": [round(float(v), 6) for v in center],
@@ -100,13 +100,12 @@ def box(cfg, ctx) -> dict:
 
 
 @torch.no_grad()
-def _turntable(cfg, ctx, model: SDFBox) -> None:
-    """A small volume-rendered turntable of the fitted box (NDC focal 1 = 90 degree fov)."""
-    cams = turntable(int(cfg.gif_frames), float(cfg.gif_distance), float(cfg.gif_elevation), 90.0,
-                     int(cfg.gif_size), device=ctx.device)
-    o, d = camera_rays(cams, normalize=True)
+def _turntable(cfg, ctx, model: SDFBox, data) -> None:
+    """A small volume-rendered turntable of the fitted box (NDC focal 1 = 90 degree fov), about
+    the data's up axis."""
+    cams = orbit_cameras(int(cfg.gif_frames), float(cfg.gif_distance), float(cfg.gif_elevation), 90.0,
+                         int(cfg.gif_size), up=data_up(data), device=ctx.device)
     sampler = SAMPLERS.build(cfg.sampler)
-    frames = render_rays_chunked(lambda a, b: model.render_rays(a, b, sampler), o, d, int(cfg.chunk))["color"]
-    save_gif(ctx.path("turntable.gif"), frames, fps=float(cfg.fps))
-    if not bool(torch.isfinite(frames).all()):
-        raise UserError("turntable render produced non-finite values")
+    render = lambda a, b: {"color": model.render_rays(a, b, sampler)["color"]}  # noqa: E731
+    write_turntable(ctx.path("turntable.gif"), lambda c: render_views(render, c, int(cfg.chunk))["color"], cams,
+                    cfg.fps)
