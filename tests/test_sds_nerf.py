@@ -14,7 +14,12 @@ from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.losses.nerf_regularizers import density_normals, opacity_entropy, orientation_penalty
 from l3d_app.models.blob_field import BlobField
 from l3d_app.render.field_shading import normals_as_latent, shading_sampler
-from l3d_app.render.field_shading import render_shaded_views as render_views
+from l3d_app.losses.nerf_regularizers import density_normals, orientation_penalty
+from l3d_app.render.field_shading import render_shaded_views
+
+
+def render_views(*args, **kw):
+    return render_shaded_views(*args, normals_fn=density_normals, penalty_fn=orientation_penalty, **kw)
 from sds_task_runs import numbers_finite, run_metrics
 
 SMALL = ("iters=4", "eval_every=2", "eval_views=2", "num_frames=2", "n_samples=12", "render_size=16",

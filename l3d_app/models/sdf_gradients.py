@@ -1,10 +1,9 @@
-"""Spatial SDF gradients of a field: its own exact one when it has it, autograd otherwise."""
+"""A field callable that also returns the spatial SDF gradient (exact when the model has it)."""
 
 from __future__ import annotations
 
 import torch
 
-from l3d_app.losses.eikonal import sdf_gradient
 
 
 def field_with_gradient(model):
@@ -23,10 +22,3 @@ def field_with_gradient(model):
         return f, rgb, g
 
     return fn
-
-
-def gradient_at(model, points: torch.Tensor) -> torch.Tensor:
-    """(N, 3) differentiable SDF gradient at points (N, 3)."""
-    if hasattr(model, "sdf_features_gradient"):
-        return model.sdf_features_gradient(points)[2]
-    return sdf_gradient(model.sdf, points, create_graph=True)

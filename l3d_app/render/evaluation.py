@@ -2,20 +2,20 @@
 
 :func:`render_views` renders cameras through any ``render_fn(origins, dirs) -> {"color",
 "depth", "opacity"}`` in chunks (optionally ``supersample``^2 rays per pixel, averaged);
-:func:`evaluate_views` returns PSNR / SSIM and the picture every evaluation logs:
+:func:`evaluation_picture` is the picture every evaluation logs
+(``l3d_app/tasks/field_common.py: evaluate_views`` adds the scores):
 one row per view, ``prediction | truth | |error| (x4, clamped) | depth`` (depth: white near,
 dark far over pixels with opacity > 0.5, black elsewhere).
 """
 
 from __future__ import annotations
 
-from typing import Callable, Dict, Optional, Tuple
+from typing import Callable, Dict, Optional
 
 import torch
 
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays, supersampled_rays
-from l3d_app.metrics.image import psnr, ssim
 from l3d_app.render.volume import render_rays_chunked
 
 RenderFn = Callable[[torch.Tensor, torch.Tensor], Dict[str, torch.Tensor]]
@@ -59,18 +59,3 @@ def evaluation_picture(pred: torch.Tensor, target: torch.Tensor, depth: Optional
             cols.append(depth_picture(depth[i], opacity[i]))
         rows.append(torch.cat(cols, dim=1))
     return torch.cat(rows, dim=0).cpu()
-
-
-@torch.no_grad()
-def evaluate_views(render_fn: RenderFn, cameras: Cameras, images: torch.Tensor, chunk: int = 8192,
-                   supersample: int = 1, max_picture_views: int = 4
-                   ) -> Tuple[Dict[str, float], torch.Tensor, Dict[str, torch.Tensor]]:
-    """Render ``cameras``, score against ``images`` (V, H, W, 3) in [0, 1].
-
-    Returns ({"psnr": dB, "ssim": ...} over all views, the picture, the renders).
-    """
-    out = render_views(render_fn, cameras, chunk, supersample)
-    pred = out["color"].clamp(0, 1)
-    metrics = {"psnr": float(psnr(pred, images)), "ssim": float(ssim(pred, images))}
-    picture = evaluation_picture(pred, images, out.get("depth"), out.get("opacity"), max_picture_views)
-    return metrics, picture, out

@@ -14,7 +14,6 @@ import torch.nn.functional as F
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays
-from l3d_app.losses.nerf_regularizers import density_normals, orientation_penalty
 from l3d_app.render.estimators import StratifiedEstimator
 from l3d_app.render.radiance import render_field_rays
 from l3d_app.render.volume import render_rays_chunked
@@ -27,9 +26,14 @@ N_CHANNELS = 7
 
 
 def shaded_field(field: torch.nn.Module, shading: str, light_offset: torch.Tensor, ambient: float,
-                 need_normals: bool, create_graph: bool) -> Callable:
+                 need_normals: bool, create_graph: bool, normals_fn: Callable, penalty_fn: Callable) -> Callable:
     """A field callable for the volume renderer returning ``N_CHANNELS`` per sample:
-    shaded colour (3), orientation penalty max(0, n.d)^2 (1) and unit normal (3).
+    shaded colour (3), orientation penalty (1) and unit normal (3).
+
+    ``normals_fn(sigma (N,), points (N, 3), create_graph) -> (N, 3)`` unit normals and
+    ``penalty_fn(normals, dirs) -> (N,)`` the orientation penalty are given by the caller
+    (e.g. :mod:`l3d_app.losses.nerf_regularizers`' ``density_normals`` / ``orientation_penalty``;
+    render code does not import losses).
 
     ``light_offset`` (3,) is added to the direction towards the camera (``-dirs``) to make
     the light direction. Without ``need_normals`` (albedo only) the last 4 channels are 0.
@@ -45,7 +49,7 @@ def shaded_field(field: torch.nn.Module, shading: str, light_offset: torch.Tenso
         with torch.enable_grad():
             x = points.detach().requires_grad_(True)
             sigma, albedo = field(x, dirs)
-            normals = density_normals(sigma, x, create_graph=create_graph)
+            normals = normals_fn(sigma, x, create_graph=create_graph)
         if not create_graph:
             sigma, albedo, normals = sigma.detach(), albedo.detach(), normals.detach()
         light = F.normalize(-dirs + light_offset.to(dirs), dim=-1)
@@ -58,7 +62,7 @@ def shaded_field(field: torch.nn.Module, shading: str, light_offset: torch.Tenso
             colour = diffuse.expand(-1, 3)
         else:
             colour = (normals + 1.0) / 2.0
-        orient = orientation_penalty(normals, dirs)[:, None]
+        orient = penalty_fn(normals, dirs)[:, None]
         return sigma, torch.cat([colour, orient, normals], dim=-1)
 
     return fn
@@ -68,18 +72,23 @@ def render_shaded_views(field: torch.nn.Module, cams: Cameras, shading: str, *, 
                         light_offset: Optional[torch.Tensor] = None, ambient: float = 0.3,
                         need_normals: bool = True, training: bool = False,
                         generator: Optional[torch.Generator] = None, chunk: int = 0,
-                        estimator=None) -> Dict[str, torch.Tensor]:
+                        estimator=None, normals_fn: Callable = None, penalty_fn: Callable = None
+                        ) -> Dict[str, torch.Tensor]:
     """Render B cameras -> image (B, H, W, 3), opacity (B, H, W), depth (B, H, W) (sum w t),
     orient (B, H, W) (sum w max(0, n.d)^2), normal (B, H, W, 3) (sum w n).
 
     ``training`` jitters the samples and keeps the graph (also through the normals).
+    ``normals_fn`` / ``penalty_fn``: see :func:`shaded_field` (required).
     ``chunk`` > 0 renders that many rays per call (evaluation, without a graph). ``estimator``:
     a ``SAMPLERS`` estimator over ``SCENE_BOX`` (None: 'n_samples' stratified samples).
     """
     origins, dirs = camera_rays(cams, normalize=True)
     if light_offset is None:
         light_offset = torch.zeros(3, device=origins.device)
-    fn = shaded_field(field, shading, light_offset, ambient, need_normals, create_graph=training)
+    if normals_fn is None or penalty_fn is None:
+        raise TypeError("render_shaded_views needs normals_fn and penalty_fn")
+    fn = shaded_field(field, shading, light_offset, ambient, need_normals, create_graph=training,
+                      normals_fn=normals_fn, penalty_fn=penalty_fn)
     bg = torch.zeros(N_CHANNELS, device=origins.device)
     bg[:3] = torch.as_tensor(background, dtype=torch.float32, device=origins.device)
     if estimator is None:

@@ -59,7 +59,7 @@ from l3d_app.errors import UserError
 from l3d_app.diffusion.registry import PRIORS
 from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.cameras import Cameras
-from l3d_app.losses.nerf_regularizers import opacity_entropy
+from l3d_app.losses.nerf_regularizers import density_normals, opacity_entropy, orientation_penalty
 from l3d_app.losses.sds import rgb_to_model_space, sds_loss
 from l3d_app.metrics.prompt_match import score_frames, score_metrics
 from l3d_app.models.blob_field import BlobField
@@ -109,7 +109,8 @@ def sds_nerf(cfg, ctx) -> dict:
     n_params = sum(p.numel() for p in field.parameters())
     draw_shading = shading_sampler(dict(cfg.shading_probs))
     bg = [float(c) for c in cfg.background]
-    render_kw = dict(n_samples=int(cfg.n_samples), background=bg, ambient=float(cfg.ambient))
+    render_kw = dict(n_samples=int(cfg.n_samples), background=bg, ambient=float(cfg.ambient),
+                     normals_fn=density_normals, penalty_fn=orientation_penalty)
     ranges = {k: list(cfg[k]) for k in ("distance_range", "elevation_range", "fov_range")}
     lam_e, lam_o = float(cfg.lambda_entropy), float(cfg.lambda_orient)
     opt, scheds = build_optimizer(cfg.optim, field.parameters(), int(cfg.iters))

@@ -24,7 +24,6 @@ import torch
 
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import DATASETS, MODELS, SAMPLERS, TASKS
-from l3d_app.render.evaluation import evaluate_views
 from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
 from l3d_app.render.radiance import render_field_rays
 from l3d_app.render.turntable import color_depth_frames, data_up, orbit_cameras, write_turntable
@@ -33,6 +32,7 @@ from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import require_positive
+from l3d_app.tasks.field_common import evaluate_views
 
 
 @TASKS.register("train_nerf")

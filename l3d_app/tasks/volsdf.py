@@ -56,13 +56,13 @@ from typing import Dict
 import torch
 
 from l3d_app.geometry.rays import camera_rays, pixel_axes
-from l3d_app.losses.eikonal import eikonal_loss
+from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
 from l3d_app.metrics.surface_scores import surface_scores
 from l3d_app.models.level_schedule import LevelSchedule
-from l3d_app.models.sdf_gradients import field_with_gradient, gradient_at
+from l3d_app.models.sdf_gradients import field_with_gradient
 from l3d_app.models.sdf_grid import pretrain_field
 from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
-from l3d_app.render.evaluation import evaluate_views, render_views
+from l3d_app.render.evaluation import render_views
 from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
 from l3d_app.render.rgbd import true_depth_maps
 from l3d_app.render.sdf_volume import render_sdf_rays
@@ -73,6 +73,7 @@ from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import require_positive
+from l3d_app.tasks.field_common import evaluate_views
 
 
 @TASKS.register("volsdf")
@@ -182,6 +183,13 @@ def volsdf(cfg, ctx) -> dict:
         "budget_stop": result.budget_stop, "history": result.history_rows(),
     })
     return metrics
+
+
+def gradient_at(model, points: torch.Tensor) -> torch.Tensor:
+    """(N, 3) differentiable SDF gradient at points (N, 3): the model's exact one if it has it."""
+    if hasattr(model, "sdf_features_gradient"):
+        return model.sdf_features_gradient(points)[2]
+    return sdf_gradient(model.sdf, points, create_graph=True)
 
 
 def _ground_truth(cfg, data):
