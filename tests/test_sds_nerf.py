@@ -211,4 +211,4 @@ def test_sds_nerf_interrupt_and_resume_equals_an_uninterrupted_run(compose, tmp_
     assert m["iters"] == 4
     a, b = (torch.load(d / "checkpoint.pt", weights_only=False)["trainable"] for d in (whole, parts))
     assert all(torch.equal(a["modules"]["field"][k], b["modules"]["field"][k]) for k in a["modules"]["field"])
-    assert torch.equal(a["extra"]["occupancy"]["mask"], b["extra"]["occupancy"]["mask"])
+    assert torch.equal(a["extra"]["sampler"]["grid.mask"], b["extra"]["sampler"]["grid.mask"])
