@@ -55,8 +55,6 @@ KNOWN: Dict[tuple, str] = {
     ("layers", "l3d_app.metrics.surface_scores"): "rays: tasks/volsdf.py must pass depth_maps="
                                                   "render.rgbd.true_depth_maps(truth, cams, scale=4); "
                                                   "then house's temporary render fallback goes",
-    ("no_task_imports_task", "l3d_app.tasks.sds_nerf"): "rays (sds_nerf -> sds_mesh; the helpers now "
-                                                         "live in tasks/prior_common and metrics.prompt_match)",
     ("no_task_imports_task", "l3d_app.tasks.pointnet_cls"): "points (-> point_learning)",
     ("no_task_imports_task", "l3d_app.tasks.pointnet_seg"): "points (-> point_learning)",
     ("no_task_imports_task", "l3d_app.tasks.pointnet_robustness"): "points (-> point_learning)",
@@ -195,7 +193,7 @@ def test_registering_module_is_imported_by_its_package(module):
 def test_importing_each_package_completes_its_registries():
     """In a fresh interpreter, after ``import l3d_app.<pkg>`` (bottom-up), every registering
     module of that package is loaded, and every conf/task/*.yaml names a registered task."""
-    packages = ["geometry", "render", "metrics", "diffusion", "losses", "models", "strategies", "data", "tasks"]
+    packages = ["runtime", "geometry", "render", "metrics", "diffusion", "losses", "models", "strategies", "data", "tasks"]
     code = ("import importlib, json, sys\nout = {}\n"
             f"for p in {packages!r}:\n"
             "    importlib.import_module('l3d_app.' + p)\n"

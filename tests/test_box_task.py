@@ -11,7 +11,7 @@ from l3d_app.app import run_task
 from l3d_app.data.box_images import box_cameras, load_box_images
 from l3d_app.errors import UserError
 from l3d_app.runtime.paths import resolve_path
-from l3d_app.tasks.box import SDFBox
+from l3d_app.models.sdf_box import SDFBox
 from conftest import course_data
 
 TRUE_CENTER, TRUE_SIZE = (0.25, 0.25, 0.0), (2.0, 1.5, 1.5)

@@ -12,6 +12,7 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras, to_opengl_c2w
 from l3d_app.models.encodings import HASH_PRIMES, GridEncoding, HarmonicEncoding
 from l3d_app.models.nerf import GridField, NeRFMLP
+from l3d_app.render.estimators import OccupancyEstimator, StratifiedEstimator
 from l3d_app.render.occupancy import OccupancyGrid
 from l3d_app.render.radiance import render_field_rays
 from conftest import course_data
@@ -145,10 +146,10 @@ BOX = ((-1.0,) * 3, (1.0,) * 3)
 def test_all_occupied_grid_renders_exactly_like_no_grid():
     o, d = _rays()
     field = BallField()
-    grid = OccupancyGrid(BOX, resolution=16)
-    assert grid.occupied_fraction == 1.0
-    a = render_field_rays(field, o, d, BOX, 64, grid=None, background=(1.0, 1.0, 1.0))
-    b = render_field_rays(field, o, d, BOX, 64, grid=grid, background=(1.0, 1.0, 1.0))
+    est = OccupancyEstimator(BOX, n_samples=64, resolution=16)
+    assert est.grid.occupied_fraction == 1.0
+    a = render_field_rays(field, o, d, StratifiedEstimator(64, scene_box=BOX), background=(1.0, 1.0, 1.0))
+    b = render_field_rays(field, o, d, est, background=(1.0, 1.0, 1.0))
     for k in ("color", "depth", "opacity"):
         assert torch.equal(a[k], b[k])
     assert float(a["opacity"].max()) > 0.9 and float(a["opacity"].min()) < 0.01   # the ball is in view
@@ -157,16 +158,17 @@ def test_all_occupied_grid_renders_exactly_like_no_grid():
 def test_occupancy_grid_skips_empty_samples_without_changing_the_render():
     o, d = _rays()
     field = BallField()
-    grid = OccupancyGrid(BOX, resolution=16)
+    est = OccupancyEstimator(BOX, n_samples=64, resolution=16)
+    grid = est.grid
     # occupied = cells whose box touches the ball (conservative, exact cover)
     half = (grid.hi - grid.lo) / grid.resolution / 2
     gap = ((grid.cell_centers() - field.c).abs() - half).clamp_min(0).norm(dim=-1)
     grid.mask.copy_(gap < 0.4)
     assert 0.02 < grid.occupied_fraction < 0.3
     field.calls = 0
-    dense = render_field_rays(field, o, d, BOX, 64, background=(1.0, 1.0, 1.0))
+    dense = render_field_rays(field, o, d, StratifiedEstimator(64, scene_box=BOX), background=(1.0, 1.0, 1.0))
     dense_calls, field.calls = field.calls, 0
-    skip = render_field_rays(field, o, d, BOX, 64, grid=grid, background=(1.0, 1.0, 1.0))
+    skip = render_field_rays(field, o, d, est, background=(1.0, 1.0, 1.0))
     assert field.calls < 0.5 * dense_calls
     assert float(skip["samples_per_ray"]) * o.shape[0] == pytest.approx(field.calls)
     torch.testing.assert_close(skip["color"], dense["color"], atol=1e-6, rtol=0)
@@ -260,25 +262,26 @@ def test_truck_loads_with_the_course_split():
 
 
 # ------------------------------------------------------------------ the task
-TINY = ["data.image_size=32", "data.n_train=48", "data.n_val=0", "data.n_test=2", "data.antialias=1",
+TINY = ["data.image_size=32", "data.n_train=48", "data.n_val=2", "data.n_test=2", "data.antialias=1",
         "tensorboard=false", "threads=1"]
 
 
 def test_train_nerf_short_run_improves_psnr(compose, tmp_path):
     cfg = compose("task=train_nerf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=240", "eval_every=60",
-                  "batch_rays=512", "n_samples=48", "occupancy.resolution=32", "occupancy.warmup_steps=40",
-                  "occupancy.update_every=8", "occupancy.threshold=2.0", "gif_frames=3", "extract_mesh=true",
-                  "mesh_resolution=32", "mesh_threshold=2.0", "mesh_format=obj")
+                  "batch_rays=512", "n_samples=48", "sampler.resolution=32", "sampler.warmup_steps=40",
+                  "sampler.update_every=8", "sampler.threshold=2.0", "gif_frames=3", "extract_mesh=true",
+                  "mesh_resolution=32", "mesh_threshold=2.0", "mesh_formats=[obj,glb]")
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    for key in ("psnr", "ssim", "seconds", "iters", "n_params", "occupied_fraction", "samples_per_ray",
-                "rays_per_second"):
+    for key in ("psnr", "ssim", "val_psnr", "val_ssim", "seconds", "iters", "n_params", "occupied_fraction",
+                "samples_per_ray", "rays_per_second"):
         assert key in m
-    hist = [h["psnr"] for h in m["history"]]
+    hist = [h["psnr"] for h in m["history"]]            # validation views only (issue 15)
+    assert m["history"][-1]["psnr"] == pytest.approx(m["val_psnr"], abs=1e-3)
     assert m["iters"] == 240 and len(hist) == 4
     assert hist[-1] > hist[0] + 1.5 and m["psnr"] > 19.0, hist
     assert m["occupied_fraction"] < 0.6 and m["samples_per_ray"] < 48
-    for name in ("turntable.gif", "test_views.png", "checkpoint.pt", "mesh.obj"):
+    for name in ("turntable.gif", "test_views.png", "checkpoint.pt", "mesh.obj", "mesh.glb"):
         assert (tmp_path / "run" / name).exists(), name
     assert m["mesh_faces"] > 100
 
@@ -288,12 +291,14 @@ def test_nerf_baseline_config_is_the_course_setting(compose, tmp_path):
     assert cfg.task_name == "train_nerf" and cfg.model.name == "nerf_mlp"
     assert (cfg.model.n_layers, cfg.model.hidden, list(cfg.model.skips)) == (6, 128, [3])
     assert (cfg.model.n_freq_xyz, cfg.model.n_freq_dir, cfg.n_samples, cfg.batch_rays) == (6, 2, 128, 1024)
-    assert (cfg.lr, cfg.lr_decay, cfg.lr_decay_epochs, cfg.occupancy.enabled) == (5e-4, 0.8, 50, False)
+    assert (cfg.lr, cfg.lr_decay, cfg.lr_decay_every, cfg.sampler.name) == (5e-4, 0.8, 20000, "stratified")
+    assert (cfg.optim.name, cfg.optim.eps, cfg.optim.decay_every) == ("adam_step", 1e-8, 20000)
     cfg = compose("task=nerf_baseline", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=3", "eval_every=3",
-                  "batch_rays=64", "n_samples=16", "n_fine=8", "gif_frames=0")
+                  "batch_rays=64", "n_samples=16", "sampler=importance", "sampler.n_fine=8", "gif_frames=0")
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    assert m["iters"] == 3 and m["occupied_fraction"] == 1.0 and math.isfinite(m["psnr"])
+    assert m["iters"] == 3 and "occupied_fraction" not in m and math.isfinite(m["psnr"])
+    assert 8 < m["samples_per_ray"] <= 16 + 8          # importance: coarse 16 + fine 8 rendered per ray in the box
 
 
 def test_builtin_cameras_follow_the_elevation_range():
@@ -307,3 +312,35 @@ def test_builtin_cameras_follow_the_elevation_range():
         assert len(va) == 2 and len(te) == 3
     with pytest.raises(UserError):
         builtin_cameras(10, 1, 1, 16, 3.2, 45.0, (20.0, -10.0))
+
+
+def test_orbit_cameras_circle_the_given_up_axis_and_cameras_up_finds_it():
+    from l3d_app.render.turntable import cameras_up, orbit_cameras
+
+    for up in ((0.0, 0.0, 1.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0), (1.0, 2.0, -0.5)):
+        u = torch.tensor(up) / torch.tensor(up).norm()
+        at = torch.tensor([0.3, -0.2, 0.1])
+        cams = orbit_cameras(8, 3.0, 30.0, 40.0, 16, up=up, at=at.tolist())
+        rel = cams.centers() - at
+        # every centre: distance 3, height 3 sin(30) along up, and the orbit spans the plane
+        torch.testing.assert_close(rel.norm(dim=-1), torch.full((8,), 3.0), atol=1e-4, rtol=0)
+        torch.testing.assert_close(rel @ u, torch.full((8,), 1.5), atol=1e-4, rtol=0)
+        # each camera looks at ``at`` and its image-up leans toward ``up``
+        fwd = cams.R[:, 2, :]
+        torch.testing.assert_close(fwd, -rel / 3.0, atol=1e-4, rtol=0)
+        assert bool(((-cams.R[:, 1, :]) @ u > 0.5).all())
+        torch.testing.assert_close(cameras_up(cams), u if max(abs(v) for v in up) == 1.0 else cameras_up(cams))
+    # a +Z-up orbit's mean up vector snaps to +Z
+    torch.testing.assert_close(cameras_up(orbit_cameras(12, 3.0, 20.0, 40.0, 16, up=(0, 0, 1))),
+                               torch.tensor([0.0, 0.0, 1.0]))
+
+
+def test_nerf_mlp_omega0_sets_the_position_frequencies(compose):
+    cfg = compose("task=nerf_baseline", "model.omega0=3.141592653589793")
+    m = NeRFMLP(**{k: v for k, v in cfg.model.items() if k != "name"})
+    x = torch.tensor([[0.25, -0.5, 0.125]])
+    out = m.enc_xyz(x)
+    for k in range(6):       # sin(pi 2^k x_0) sits at column 3 + 0 * 6 + k
+        assert math.isclose(float(out[0, 3 + k]), math.sin(math.pi * 2 ** k * 0.25), abs_tol=1e-5)
+    with pytest.raises(ValueError):
+        NeRFMLP(omega0=0.0)

@@ -3,6 +3,7 @@ sphere init with a near-zero grid, the trilinear SDF cache, near-surface sample 
 the learnable-beta VolSDF density."""
 
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -13,6 +14,8 @@ from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
 from l3d_app.models.encodings import GridEncoding
 from l3d_app.models.sdf_grid import SDFGridField, finite_difference_gradient, grid_encode_with_jacobian
 from l3d_app.render.densities import LaplaceDensity, volsdf_density
+from l3d_app.render.estimators import SDFCacheProposal
+from l3d_app.render.neus import NeuSDensity
 from l3d_app.render.sdf_volume import SDFGridCache, render_sdf_rays
 
 D = torch.float64
@@ -126,23 +129,23 @@ def test_sdf_cache_is_trilinear_in_the_right_axis_order():
     q = q[(q.norm(dim=-1) - 0.5).abs() < 0.3]
     cell = 2.0 / 32
     assert float((cache(q) - sph(q)).abs().max()) < cell ** 2 * 4          # O(h^2) curvature error
-    with pytest.raises(UserError):
+    with pytest.raises(ValueError):
         SDFGridCache(BOX, resolution=1)
 
 
 @pytest.mark.parametrize("density", ["volsdf", "neus"])
 def test_cached_coarse_pass_places_fine_samples_at_the_zero_level_set(density):
     sph = Sphere(0.5)
-    cache = SDFGridCache(BOX, resolution=24)
-    cache.update(sph)
+    est = SDFCacheProposal(BOX, n_coarse=96, n_fine=16, resolution=24, padding=1e-4)
+    est.update(0, SimpleNamespace(sdf=sph))
+    dens = LaplaceDensity(0.002, 500.0, learnable=False, beta_min=0.0) if density == "volsdf" else NeuSDensity(500.0)
     torch.manual_seed(0)
     o = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1) * 2.5
     target = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1) * torch.rand(64, 1) * 0.4   # inside
     d = torch.nn.functional.normalize(target - o, dim=-1)
     colour = lambda p, v: (sph(p), torch.full((p.shape[0], 3), 0.25))  # noqa: E731
-    out = render_sdf_rays(sph, colour, o, d, BOX, density=density, alpha=500.0, beta=0.002, s=500.0,
-                          n_coarse=96, n_fine=16, coarse_fn=cache, padding=1e-4)
-    f_at_samples = sph(o[:, None, :] + out["t"][..., None] * d[:, None, :])
+    out = render_sdf_rays(colour, o, d, est, dens)
+    f_at_samples = sph(o[:, None, :] + out["t"].reshape(64, 16)[..., None] * d[:, None, :])
     # uniform samples would put ~4% of them this close; the cache-guided ones hug the surface
     assert (f_at_samples.abs() < 0.06).float().mean() > 0.9
     assert out["opacity"].min() > 0.98

@@ -12,7 +12,14 @@ from l3d_app.diffusion.view_prompts import VIEWS, ViewPrompts, sample_orbit_came
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.losses.nerf_regularizers import density_normals, opacity_entropy, orientation_penalty
-from l3d_app.tasks.sds_nerf import BlobField, normals_as_latent, render_views, shading_sampler
+from l3d_app.models.blob_field import BlobField
+from l3d_app.render.field_shading import normals_as_latent, shading_sampler
+from l3d_app.losses.nerf_regularizers import density_normals, orientation_penalty
+from l3d_app.render.field_shading import render_shaded_views
+
+
+def render_views(*args, **kw):
+    return render_shaded_views(*args, normals_fn=density_normals, penalty_fn=orientation_penalty, **kw)
 from sds_task_runs import numbers_finite, run_metrics
 
 SMALL = ("iters=4", "eval_every=2", "eval_views=2", "num_frames=2", "n_samples=12", "render_size=16",
@@ -194,7 +201,7 @@ def test_sds_nerf_interrupt_and_resume_equals_an_uninterrupted_run(compose, tmp_
     from l3d_app.app import RunInterrupted
 
     whole, parts = tmp_path / "whole", tmp_path / "parts"
-    small = ("iters=4", "occupancy.update_every=2")          # the grid changes across the cut
+    small = ("iters=4", "sampler.update_every=2")          # the grid changes across the cut
     _run(compose, whole, *small)
     monkeypatch.setenv("L3D_STOP_AT_STEP", "2")
     with pytest.raises(RunInterrupted):
@@ -204,4 +211,4 @@ def test_sds_nerf_interrupt_and_resume_equals_an_uninterrupted_run(compose, tmp_
     assert m["iters"] == 4
     a, b = (torch.load(d / "checkpoint.pt", weights_only=False)["trainable"] for d in (whole, parts))
     assert all(torch.equal(a["modules"]["field"][k], b["modules"]["field"][k]) for k in a["modules"]["field"])
-    assert torch.equal(a["extra"]["occupancy"]["mask"], b["extra"]["occupancy"]["mask"])
+    assert torch.equal(a["extra"]["sampler"]["grid.mask"], b["extra"]["sampler"]["grid.mask"])

@@ -120,3 +120,80 @@ def test_neus_raw_exponential_form_would_fail_but_ours_does_not():
     assert float(alpha[0]) == pytest.approx(-mpmath.expm1(-10.0), rel=1e-9)   # s * 1e-3 = 10
     assert float(alpha[1]) == pytest.approx(float(1 - (1 / (1 + mpmath.exp(5))) / (1 / (1 + mpmath.exp(-5)))),
                                             rel=1e-12)
+
+
+# ------------------------------------------------------------ the DENSITIES modules (what tasks run)
+def _packed(values, dtype):
+    """Three rays of two segments each: sdf at the starts, unit segments."""
+    f = torch.tensor(values, dtype=dtype, requires_grad=True)
+    t0 = torch.tensor([0.0, 1.0] * (len(values) // 2), dtype=dtype)
+    return f, t0, t0 + 1.0, torch.arange(len(values) // 2).repeat_interleave(2)
+
+
+@pytest.mark.parametrize("sdf", [-1e3, -1e-3, 0.0, 2e-4, 1e3])
+def test_volsdf_module_at_beta_1e4_matches_mpmath_in_float32(sdf):
+    from l3d_app.registry import DENSITIES
+    import l3d_app.render.densities  # noqa: F401  (registers)
+
+    beta = 1e-4
+    dens = DENSITIES.build({"name": "volsdf", "beta": beta, "mode": "fixed", "beta_end": beta, "beta_min": 0.0,
+                            "alpha": 10.0})
+    f, t0, t1, rays = _packed([sdf, -sdf], torch.float32)
+    tau = dens.optical_depth(f, t0, t1, rays)             # forward() is the code path: sigma * (t1 - t0)
+    (g,) = torch.autograd.grad(tau.sum(), f)
+    assert torch.isfinite(tau).all() and torch.isfinite(g).all()
+    b = float(dens.beta)                  # beta as the module holds it (float32 of beta_min + exp(rho))
+    assert b == pytest.approx(beta, rel=1e-6)
+    for i, x in enumerate([sdf, -sdf]):
+        xf = float(torch.tensor(x, dtype=torch.float32))
+        ref = 10.0 * _mp_laplace_cdf(-xf, b)
+        # float32: the exponent x / beta (up to 10 here) carries a relative rounding of ~1e-7
+        assert abs(float(tau[i].detach()) - float(ref)) <= 1e-5 * abs(float(ref)) + 1e-30
+        ref_g = -10.0 * _mp_laplace_pdf(-xf, b)
+        assert abs(float(g[i]) - float(ref_g)) <= 2e-3 * abs(float(ref_g)) + 1e-30
+
+
+def test_volsdf_module_beta_gradient_and_anneal_schedule():
+    from l3d_app.registry import DENSITIES
+    import l3d_app.render.densities  # noqa: F401
+
+    dens = DENSITIES.build({"name": "volsdf", "beta": 0.1, "mode": "learnable", "beta_end": 0.01, "beta_min": 1e-4})
+    f, t0, t1, rays = _packed([-0.05, 0.02], torch.float32)
+    (g,) = torch.autograd.grad(dens.optical_depth(f.detach(), t0, t1, rays).sum(), dens.rho)
+    # alpha = 1/beta: tau = Psi_b(-f)/b; d/d rho = d/d beta * (beta - beta_min), in float64 by mpmath
+    b = mpmath.mpf(float(dens.beta.detach()))
+    ref = sum(mpmath.diff(lambda bb: _mp_laplace_cdf(-x, bb) / bb, b)
+              for x in (float(torch.tensor(-0.05)), float(torch.tensor(0.02)))) * (b - mpmath.mpf(1e-4))
+    assert abs(float(g) - float(ref)) < 1e-4 * abs(float(ref))
+    ann = DENSITIES.build({"name": "volsdf", "beta": 0.1, "mode": "anneal", "beta_end": 0.001,
+                           "anneal_fraction": 0.5, "beta_min": 1e-4})
+    for step, expected in ((0, 0.1), (25, 0.01), (50, 0.001), (99, 0.001)):
+        ann.schedule(step, 100)
+        assert float(ann.beta) == pytest.approx(expected, rel=1e-5)
+    with pytest.raises(ValueError):
+        DENSITIES.build({"name": "volsdf", "beta": 0.1, "mode": "sideways"})
+
+
+@pytest.mark.parametrize("s", [64.0, 1e4])
+def test_neus_module_at_s_1e4_matches_mpmath_and_ends_each_ray(s):
+    from l3d_app.registry import DENSITIES
+    import l3d_app.render.neus  # noqa: F401
+
+    dens = DENSITIES.build({"name": "neus", "s": s})
+    vals = [1e3, -1e3, 2e-4, -1e-4, -0.5, 0.5]             # rays: (1e3 -> -1e3), (2e-4 -> -1e-4), (-0.5 -> 0.5)
+    f, t0, t1, rays = _packed(vals, torch.float64)
+    tau = dens.optical_depth(f, t0, t1, rays)
+    (g,) = torch.autograd.grad(tau.sum(), f)
+    assert torch.isfinite(tau).all() and torch.isfinite(g).all()
+    assert float(tau[1]) == float(tau[3]) == float(tau[5]) == 0.0      # last segment of every ray
+    for i in (0, 2, 4):
+        za, zb = mpmath.mpf(s) * vals[i], mpmath.mpf(s) * vals[i + 1]
+        ref = max(_mp_log_sigmoid(za) - _mp_log_sigmoid(zb), 0)
+        assert abs(float(tau[i].detach()) - float(ref)) <= 1e-12 * max(1.0, abs(float(ref)))
+        if vals[i] > vals[i + 1]:     # d tau / d f_start = + s sigmoid(-s f_start) (it ends no segment)
+            assert abs(float(g[i]) - float(mpmath.mpf(s) / (1 + mpmath.exp(za)))) <= 1e-12 * s
+    f32, t0, t1, rays = _packed(vals, torch.float32)
+    tau32 = dens.optical_depth(f32, t0, t1, rays)
+    (g32,) = torch.autograd.grad(tau32.sum(), f32)
+    assert torch.isfinite(tau32).all() and torch.isfinite(g32).all()
+    assert float(tau32[0]) == pytest.approx(float(tau[0]), rel=1e-6)

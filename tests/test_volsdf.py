@@ -1,6 +1,7 @@
 """Neural surfaces: eikonal loss at kinks, SDF network init, SDF volume rendering, tasks volsdf / neural_sdf."""
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -11,7 +12,11 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.sdf import Box, Sphere
 from l3d_app.losses.eikonal import eikonal_at, eikonal_loss, sdf_gradient
 from l3d_app.models.sdf_net import SDFField, SDFNetwork, pretrain_sphere
+from l3d_app.render.densities import LaplaceDensity
+from l3d_app.render.estimators import SDFCacheProposal
+from l3d_app.render.neus import NeuSDensity
 from l3d_app.render.sdf_volume import render_sdf_rays
+
 
 def _true_mesh_diagonal() -> float:
     """Bounding-box diagonal of the built-in scene's vertices, computed here (numpy), not by
@@ -23,7 +28,7 @@ def _true_mesh_diagonal() -> float:
     return float(np.linalg.norm(v.max(0) - v.min(0)))
 
 
-TINY = ["data.image_size=32", "data.n_train=48", "data.n_val=0", "data.n_test=2", "data.antialias=1",
+TINY = ["data.image_size=32", "data.n_train=48", "data.n_val=2", "data.n_test=2", "data.antialias=1",
         "tensorboard=false", "threads=1"]
 
 
@@ -74,8 +79,10 @@ def test_sdf_volume_rendering_of_an_exact_sphere(density):
     o = torch.tensor([[0.0, 0.0, -2.0], [0.0, 0.2, -2.0], [0.0, 0.9, -2.0]])
     d = torch.tensor([[0.0, 0.0, 1.0]]).expand(3, 3)
     colour = lambda p, v: (sph(p), torch.full((p.shape[0], 3), 0.25))  # noqa: E731
-    out = render_sdf_rays(sph, colour, o, d, ((-1, -1, -1), (1, 1, 1)), density=density, alpha=200.0, beta=0.005,
-                          s=400.0, n_coarse=64, n_fine=32, background=(1.0, 1.0, 1.0))
+    est = SDFCacheProposal(((-1, -1, -1), (1, 1, 1)), n_coarse=64, n_fine=32, resolution=0)
+    dens = LaplaceDensity(0.005, 200.0, learnable=False, beta_min=0.0) if density == "volsdf" else NeuSDensity(400.0)
+    out = render_sdf_rays(colour, o, d, est, dens, field=SimpleNamespace(sdf=sph), background=(1.0, 1.0, 1.0))
+    out["t"] = out["t"].reshape(3, 32)
     ref_t = 2.0 - torch.sqrt(0.25 - torch.tensor([0.0, 0.2]) ** 2)
     assert out["opacity"][:2].min() > 0.99 and out["opacity"][2] < 1e-3
     torch.testing.assert_close(out["depth"][:2] / out["opacity"][:2], ref_t, atol=0.02, rtol=0)
@@ -97,15 +104,17 @@ def test_sdf_field_config_builds_and_rejects_unknown_encoding():
 def test_volsdf_short_run_improves_psnr_and_writes_everything(compose, tmp_path):
     cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=120", "eval_every=40",
                   "batch_rays=256", "lr=0.005", "pretrain_steps=50", "gif_frames=2", "mesh_resolution=32",
-                  "eval_points=2000", "mesh_format=obj")
-    assert (cfg.beta, cfg.alpha, cfg.beta_mode, cfg.density) == (0.1, None, "anneal", "volsdf")
+                  "eval_points=2000", "mesh_formats=[obj,glb]")
+    assert (cfg.beta, cfg.alpha, cfg.beta_mode, cfg.density.name) == (0.1, None, "anneal", "volsdf")
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     for key in ("psnr", "ssim", "chamfer", "chamfer_rel_diag", "f1", "chamfer_observed",
                 "chamfer_observed_rel_diag", "f1_observed", "observed_fraction", "seconds", "samples_per_ray",
-                "fine_samples_per_ray", "iters", "n_params", "beta", "beta_final", "cpu_seconds_per_step"):
+                "fine_samples_per_ray", "iters", "n_params", "beta", "beta_final", "cpu_seconds_per_step",
+                "val_psnr", "val_ssim"):
         assert key in m, key
-    hist = [h["psnr"] for h in m["history"]]
+    hist = [h["psnr"] for h in m["history"]]          # validation views only
+    assert m["history"][-1]["psnr"] == pytest.approx(m["val_psnr"], abs=1e-3)
     assert len(hist) == 3 and hist[-1] > hist[0] + 0.25 and hist[-1] > 14.5, hist
     assert np.isfinite(m["chamfer"]) and 0 <= m["f1"] <= 1
     assert 0 < m["fine_samples_per_ray"] <= cfg.n_fine and m["samples_per_ray"] <= cfg.n_coarse + cfg.n_fine
@@ -114,21 +123,32 @@ def test_volsdf_short_run_improves_psnr_and_writes_everything(compose, tmp_path)
     # the training cameras (elevations -10..70 degrees) never see the plinth's underside
     assert 0.6 < m["observed_fraction"] < 0.8
     assert m["chamfer_observed_rel_diag"] == pytest.approx(m["chamfer_observed"] / diag, abs=1e-6)
-    for name in ("render.gif", "geometry.gif", "mesh.obj", "test_views.png", "checkpoint.pt"):
+    import trimesh
+    glb = trimesh.load(tmp_path / "run" / "mesh.glb", force="mesh")
+    assert glb.visual.vertex_colors.shape[0] == len(glb.vertices) and glb.visual.vertex_colors[:, :3].std() > 0
+    for name in ("render.gif", "geometry.gif", "mesh.obj", "mesh.glb", "test_views.png", "checkpoint.pt"):
         assert (tmp_path / "run" / name).exists(), name
 
 
 def test_volsdf_neus_variant_and_knobs_compose(compose, tmp_path):
     cfg = compose("task=volsdf", "density=neus", "s=1000", "beta=0.02")
-    assert (cfg.density, cfg.s, cfg.beta) == ("neus", 1000.0, 0.02)
-    cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "density=neus", "iters=4",
-                  "eval_every=4", "batch_rays=64", "pretrain_steps=5", "gif_frames=0", "mesh_resolution=24",
-                  "eval_points=500")
+    assert (cfg.density.name, cfg.density.s, cfg.beta) == ("neus", 1000.0, 0.02)
+    # issue 15.4: the NeuS variant must LEARN, as VolSDF does (same short run as the VolSDF test)
+    cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "density=neus", "iters=120",
+                  "eval_every=40", "batch_rays=256", "lr=0.005", "pretrain_steps=50", "gif_frames=0",
+                  "mesh_resolution=24", "eval_points=500")
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    assert m["density"] == "neus" and np.isfinite(m["psnr"])
-    with pytest.raises(UserError):
-        run_task(compose("task=volsdf", *TINY, "density=unisurf"), out_dir=tmp_path / "bad")
+    hist = [h["psnr"] for h in m["history"]]
+    assert m["density"] == "neus" and np.isfinite(m["psnr"]) and len(hist) == 3
+    assert hist[-1] > hist[0] + 0.25, hist
+    from hydra.errors import MissingConfigException
+    from l3d_app.registry import DENSITIES
+
+    with pytest.raises(MissingConfigException, match="unisurf"):      # no conf/density/unisurf.yaml
+        compose("task=volsdf", *TINY, "density=unisurf")
+    with pytest.raises(UserError, match="unisurf"):                   # nor a registered density
+        DENSITIES.build({"name": "unisurf"})
 
 
 def test_neural_sdf_fits_the_builtin_torus(compose, tmp_path):
@@ -136,7 +156,7 @@ def test_neural_sdf_fits_the_builtin_torus(compose, tmp_path):
                   "batch_points=512", "mesh_resolution=32", "eval_points=2000", "gif_frames=2", "gif_size=24")
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    assert m["f1"] > 0.6 and m["chamfer"] < 0.15 and m["surface_abs"] < 0.02, m
+    assert m["f1"] > 0.6 and m["chamfer"] < 0.15 and m["val_surface_abs"] < 0.02, m
     for name in ("mesh.ply", "mesh.gif", "metrics.json"):
         assert (tmp_path / "run" / name).exists(), name
 

@@ -242,3 +242,105 @@ def test_volume_renderer_sphere_depth_and_background():
     assert torch.allclose(centre, torch.full_like(centre, 2.0), atol=0.02)   # sphere front at t = 2
     torch.testing.assert_close(out["image"][0, 0, 0], torch.tensor([0.0, 0.0, 1.0], dtype=D))
     torch.testing.assert_close(out["image"][0, 8, 8], torch.tensor([1.0, 0.0, 0.0], dtype=D))
+
+
+# ------------------------------------------------- the one rendering function vs a naive per-ray loop
+def _naive_render(t0, t1, rays, n_rays, sigma, rgb, background, alpha_mode=False):
+    """Float64 reference: front-to-back product per ray, one Python loop (the test's own code)."""
+    out_c, out_d, out_o = [], [], []
+    for r in range(n_rays):
+        trans, c, dep = torch.ones((), dtype=D), torch.zeros(3, dtype=D), torch.zeros((), dtype=D)
+        for i in (rays == r).nonzero().flatten().tolist():
+            a = sigma[i] if alpha_mode else 1.0 - torch.exp(-sigma[i] * (t1[i] - t0[i]))
+            c = c + trans * a * rgb[i]
+            dep = dep + trans * a * t0[i]
+            trans = trans * (1.0 - a)
+        out_c.append(c + trans * background)
+        out_d.append(dep)
+        out_o.append(1.0 - trans)
+    return torch.stack(out_c), torch.stack(out_d), torch.stack(out_o)
+
+
+class _Blob(torch.nn.Module):
+    """A Gaussian density blob (float64) with a learnable scale, colour sigmoid(3 p)."""
+
+    def __init__(self):
+        super().__init__()
+        self.scale = torch.nn.Parameter(torch.tensor(8.0, dtype=D))
+        self.c = torch.tensor([0.1, -0.2, 0.05], dtype=D)
+
+    def density(self, p):
+        return self.scale * torch.exp(-((p - self.c) ** 2).sum(-1) / 0.18)
+
+    def forward(self, p, d):
+        return self.density(p), torch.sigmoid(3 * p)
+
+
+def _blob_rays(n=24):
+    g = torch.Generator().manual_seed(3)
+    o = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=D), dim=-1) * 2.5
+    target = (torch.rand(n, 3, generator=g, dtype=D) - 0.5) * 1.2
+    d = torch.nn.functional.normalize(target - o, dim=-1)
+    d[0] = torch.nn.functional.normalize(torch.tensor([1.0, 0.0, 0.0], dtype=D) - o[0], dim=-1) * -1  # a miss
+    return o, d
+
+
+@pytest.mark.parametrize("kind", ["stratified", "occupancy"])
+def test_render_rays_matches_a_naive_float64_loop_in_values_and_gradients(kind):
+    from l3d_app.render.estimators import OccupancyEstimator, StratifiedEstimator
+    from l3d_app.render.rendering import radiance_fn, render_rays
+
+    box = ((-1.0,) * 3, (1.0,) * 3)
+    o, d = _blob_rays()
+    field = _Blob()
+    if kind == "stratified":
+        est = StratifiedEstimator(32, scene_box=box)
+    else:
+        est = OccupancyEstimator(box, n_samples=32, resolution=8)
+        centres = est.grid.cell_centers().double()
+        est.grid.mask.copy_((centres - field.c).norm(dim=-1) < 0.6)     # part of the grid empty
+        assert 0.05 < est.grid.occupied_fraction < 0.5
+    t0, t1, rays = est.sampling(o, d, perturb=True, generator=torch.Generator().manual_seed(0))
+    assert bool((rays[1:] >= rays[:-1]).all()) and bool((t1 >= t0).all())
+    bg = torch.tensor([0.2, 0.5, 1.0], dtype=D)
+    out = render_rays(t0, t1, rays, o.shape[0], radiance_fn(field, o, d), background=bg)
+    (g,) = torch.autograd.grad(out["color"].sum() + out["depth"].sum(), field.scale)
+    pts = o[rays] + t0[:, None] * d[rays]
+    sigma, rgb = field(pts, d[rays])
+    ref_c, ref_d, ref_o = _naive_render(t0, t1, rays, o.shape[0], sigma, rgb, bg)
+    (ref_g,) = torch.autograd.grad(ref_c.sum() + ref_d.sum(), field.scale)
+    torch.testing.assert_close(out["color"], ref_c, atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(out["depth"], ref_d, atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(out["opacity"], ref_o, atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(g, ref_g, atol=1e-10, rtol=1e-9)
+    assert float(out["opacity"].detach().max()) > 0.5 and float(out["opacity"][0]) == 0.0   # the blob is seen; a miss
+    assert (rays == 0).sum() == 0                                                  # no samples for the miss
+    if kind == "occupancy":
+        dense = StratifiedEstimator(32, scene_box=box).sampling(o, d, perturb=True,
+                                                                 generator=torch.Generator().manual_seed(0))
+        assert t0.numel() < 0.7 * dense[0].numel()                       # the grid skipped samples
+
+
+def test_render_rays_alpha_and_tau_modes_match_the_naive_loop():
+    from l3d_app.render.estimators import StratifiedEstimator
+    from l3d_app.render.rendering import points_of, render_rays
+
+    o, d = _blob_rays(8)
+    t0, t1, rays = StratifiedEstimator(16, near=0.5, far=4.5).sampling(o, d)
+    field = _Blob()
+    bg = torch.zeros(3, dtype=D)
+
+    def alpha_fn(a, b, r):
+        s, rgb = field(points_of(o, d, a, r)[0], None)
+        return {"rgb": rgb, "alpha": 1.0 - torch.exp(-s), "extra": s}
+
+    out = render_rays(t0, t1, rays, 8, alpha_fn, background=bg)
+    s, rgb = field(points_of(o, d, t0, rays)[0], None)
+    ref_c, ref_d, _ = _naive_render(t0, t1, rays, 8, 1.0 - torch.exp(-s), rgb, bg, alpha_mode=True)
+    torch.testing.assert_close(out["color"], ref_c, atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(out["aux"]["extra"], s)
+    tau_out = render_rays(t0, t1, rays, 8, lambda a, b, r: {"rgb": rgb, "tau": s * (b - a)}, background=bg)
+    sig_out = render_rays(t0, t1, rays, 8, lambda a, b, r: (rgb, s), background=bg)
+    torch.testing.assert_close(tau_out["color"], sig_out["color"], atol=0, rtol=0)
+    with pytest.raises(ValueError):
+        render_rays(t0, t1, rays, 8, lambda a, b, r: {"rgb": rgb, "tau": s, "alpha": s})

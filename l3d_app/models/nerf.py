@@ -44,6 +44,8 @@ class NeRFMLP(torch.nn.Module):
         n_layers, hidden: trunk depth and width (course: 6 x 128).
         skips: trunk layer indices (0-based) whose input gets the encoded xyz appended (course: [3]).
         n_freq_xyz, n_freq_dir: harmonic frequencies of positions / directions (course: 6 / 2).
+        omega0: frequency base of the position encoding, ``f_k = omega0 2^k`` (1: the course;
+            pi: the NeRF paper's ``2^k pi``).
         use_viewdirs: colour depends on the view direction.
         density_activation: relu (course) | softplus | exp.
         scene_box: accepted for a uniform model interface (positions are used raw).
@@ -51,12 +53,14 @@ class NeRFMLP(torch.nn.Module):
 
     def __init__(self, n_layers: int = 6, hidden: int = 128, skips: Sequence[int] = (3,),
                  n_freq_xyz: int = 6, n_freq_dir: int = 2, use_viewdirs: bool = True,
-                 density_activation: str = "relu", scene_box=None):
+                 density_activation: str = "relu", scene_box=None, omega0: float = 1.0):
         super().__init__()
         _check_activation(density_activation)
         if n_layers < 1 or hidden < 1:
             raise UserError(f"nerf_mlp needs n_layers >= 1 and hidden >= 1, got {n_layers}, {hidden}")
-        self.enc_xyz = HarmonicEncoding(3, n_freq_xyz)
+        if not float(omega0) > 0:
+            raise ValueError(f"omega0 must be > 0, got {omega0}")
+        self.enc_xyz = HarmonicEncoding(3, n_freq_xyz, omega0=float(omega0))
         self.enc_dir = HarmonicEncoding(3, n_freq_dir) if use_viewdirs else None
         self.skips = set(int(s) for s in skips)
         layers, d_in = [], self.enc_xyz.out_dim

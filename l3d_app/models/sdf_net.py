@@ -165,7 +165,7 @@ def fit_to_sphere(sdf_fn: Callable[[torch.Tensor], torch.Tensor], params: Iterab
     opt = torch.optim.Adam(params, lr=lr)
     err = float("nan")
     for _ in range(int(steps)):
-        u = torch.rand(n_points, 3, generator=generator, device=generator.device if generator else None)
+        u = torch.rand(n_points, 3, generator=generator)          # CPU draw (the run's one generator), then moved
         x = lo + u.to(lo.device) * (hi - lo)
         loss = (sdf_fn(x) - (x.norm(dim=-1) - radius)).abs().mean()
         opt.zero_grad(set_to_none=True)

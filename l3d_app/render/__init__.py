@@ -6,6 +6,7 @@ from l3d_app.exports import lazy_exports
 
 # Registering modules: importing the package completes its registries.
 from l3d_app.render import mesh_renderer, soft_rasterize, points, volume  # noqa: F401,E402
+from l3d_app.render import densities, estimators, neus  # noqa: F401,E402  (DENSITIES, SAMPLERS)
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "MeshRenderer": "mesh_renderer",
@@ -13,6 +14,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "PointRenderer": "points",
     "VolumeRenderer": "volume",
     "rasterize_gaussians": "gaussians",
+    "render_rays": "rendering",
     "render_field_rays": "radiance",
     "render_sdf_rays": "sdf_volume",
     "sphere_trace": "sphere_tracing",

@@ -20,6 +20,8 @@ from typing import Optional, Union
 
 import torch
 
+from l3d_app.registry import DENSITIES
+
 Scalar = Union[float, torch.Tensor]
 
 
@@ -100,3 +102,60 @@ class LaplaceDensity(torch.nn.Module):
         beta = self.beta
         alpha = 1.0 / beta if self.fixed_alpha is None else float(self.fixed_alpha)
         return volsdf_density(sdf, alpha, beta)
+
+    def optical_depth(self, sdf: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
+                      ray_indices: torch.Tensor, widen: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """(N,) optical depth ``sigma(f_i) (t_end_i - t_start_i)`` of packed segments.
+
+        ``widen`` (N,) (no grad; a coarse sampling pass): ``beta`` is raised to at least it and
+        ``alpha`` kept, so a surface thinner than the sample spacing is still seen.
+        """
+        if widen is None:
+            return self(sdf) * (t_ends - t_starts)
+        beta = widen.clamp_min(float(self.beta))
+        return volsdf_density(sdf, float(self.alpha), beta) * (t_ends - t_starts)
+
+    def rgb_key(self) -> str:
+        """What the density gives the renderer per sample: ``sigma`` (times the segment length)."""
+        return "sigma"
+
+    def schedule(self, step: int, iters: int) -> None:
+        """Per-step hook (no-op: a fixed or learnable beta)."""
+        return None
+
+    def stats(self) -> dict:
+        return {"beta": float(self.beta), "alpha": float(self.alpha)}
+
+
+@DENSITIES.register("volsdf")
+class VolSDFDensity(LaplaceDensity):
+    """VolSDF's density with its ``beta`` schedule (config ``density=volsdf``).
+
+    Args:
+        beta: the initial (``anneal``, ``learnable``) or fixed (``fixed``) Laplace scale (world units).
+        mode: ``anneal``: geometric from ``beta`` to ``beta_end`` over ``anneal_fraction`` of the
+            steps, then held; ``learnable``: trained with the field (floor ``beta_min``);
+            ``fixed``: kept.
+        alpha: density inside (1 / world units), or None for ``1 / beta`` (VolSDF).
+    """
+
+    def __init__(self, beta: float = 0.1, mode: str = "anneal", beta_end: float = 0.005,
+                 anneal_fraction: float = 0.8, beta_min: float = 1e-3, alpha: Optional[float] = None):
+        if mode not in ("anneal", "learnable", "fixed"):
+            raise ValueError(f"density mode must be anneal, learnable or fixed, got {mode!r}")
+        if not 0 <= float(beta_min) < min(float(beta), float(beta_end)):
+            raise ValueError(f"beta_min must be in [0, min(beta, beta_end)), got {beta_min} "
+                             f"(beta={beta}, beta_end={beta_end})")
+        if not 0.0 <= float(anneal_fraction) <= 1.0:
+            raise ValueError(f"anneal_fraction must be in [0, 1], got {anneal_fraction}")
+        super().__init__(float(beta), None if alpha is None else float(alpha), learnable=mode == "learnable",
+                         beta_min=float(beta_min))
+        self.mode, self.beta_start, self.beta_end = mode, float(beta), float(beta_end)
+        self.anneal_fraction = float(anneal_fraction)
+
+    def schedule(self, step: int, iters: int) -> None:
+        """``anneal``: ``beta = beta_start (beta_end / beta_start)^p``, ``p = min(1, step / (fraction iters))``."""
+        if self.mode != "anneal":
+            return
+        p = min(1.0, step / max(1.0, self.anneal_fraction * int(iters)))
+        self.set_beta(self.beta_start * (self.beta_end / self.beta_start) ** p)

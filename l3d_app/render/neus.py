@@ -18,10 +18,13 @@ raw ``(Phi(a) - Phi(b)) / Phi(a)`` loses everything to 0/0 once both sigmoids un
 
 from __future__ import annotations
 
-from typing import Union
+import math
+from typing import Optional, Union
 
 import torch
 import torch.nn.functional as F
+
+from l3d_app.registry import DENSITIES
 
 Scalar = Union[float, torch.Tensor]
 
@@ -59,3 +62,48 @@ def neus_alpha(sdf_start: torch.Tensor, sdf_end: torch.Tensor, s: Scalar) -> tor
     """NeuS discrete opacity ``max((Phi_s(f_start) - Phi_s(f_end)) / Phi_s(f_start), 0)`` in
     [0, 1], as ``-expm1(-tau)`` of :func:`neus_optical_depth`."""
     return -torch.expm1(-neus_optical_depth(sdf_start, sdf_end, s))
+
+
+@DENSITIES.register("neus")
+class NeuSDensity(torch.nn.Module):
+    """NeuS's opacity as a density module (config ``density=neus``).
+
+    Segment ``i`` of a ray has optical depth ``max(log Phi_s(f_i) - log Phi_s(f_{i+1}), 0)``
+    (:func:`neus_optical_depth`; ``f_{i+1}`` the SDF at the ray's next sample); the last
+    segment of each ray gets 0. ``s`` (1 / world units) is fixed, or trained when
+    ``learnable`` (as ``log s``).
+    """
+
+    def __init__(self, s: float = 64.0, learnable: bool = False):
+        super().__init__()
+        if not float(s) > 0:
+            raise ValueError(f"s must be > 0, got {s}")
+        log_s = torch.tensor(math.log(float(s)))
+        if learnable:
+            self.log_s = torch.nn.Parameter(log_s)
+        else:
+            self.register_buffer("log_s", log_s)
+        self.fixed_s = None if learnable else float(s)
+
+    @property
+    def s(self):
+        """Inverse scale (a float when fixed, a scalar tensor when learnable)."""
+        return self.fixed_s if self.fixed_s is not None else torch.exp(self.log_s)
+
+    def optical_depth(self, sdf: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
+                      ray_indices: torch.Tensor, widen: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """(N,) optical depth of packed segments (``widen`` is not needed: a sign change between
+        two samples is seen at any ``s``)."""
+        tau = neus_optical_depth(sdf[:-1], sdf[1:], self.s)
+        same_ray = ray_indices[1:] == ray_indices[:-1]
+        tau = torch.where(same_ray, tau, torch.zeros_like(tau))
+        return torch.cat([tau, tau.new_zeros(1)]) if sdf.numel() else sdf.new_zeros(0)
+
+    def rgb_key(self) -> str:
+        return "tau"
+
+    def schedule(self, step: int, iters: int) -> None:
+        return None
+
+    def stats(self) -> dict:
+        return {"s": float(self.s)}

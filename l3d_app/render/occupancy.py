@@ -90,8 +90,8 @@ class OccupancyGrid(torch.nn.Module):
             return False
         cell = (self.hi - self.lo) / self.resolution
         centres = self.cell_centers()
-        jitter = torch.rand(centres.shape, generator=generator, device=generator.device if generator else None)
-        pts = centres + (jitter.to(centres.device) - 0.5) * cell
+        jitter = torch.rand(centres.shape, generator=generator).to(centres.device)   # CPU draw, then moved
+        pts = centres + (jitter - 0.5) * cell
         sigma = torch.cat([density_fn(pts[s:s + self.chunk]).reshape(-1).float()
                            for s in range(0, pts.shape[0], self.chunk)])
         self.density_ema.copy_(torch.maximum(self.density_ema * self.decay, sigma))

@@ -26,44 +26,19 @@ from typing import Dict
 
 import torch
 
-from l3d_app.errors import UserError
-from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.rays import camera_rays
-from l3d_app.geometry.sdf import box_sdf
 from l3d_app.metrics.image import psnr
-from l3d_app.registry import DATASETS, TASKS
-from l3d_app.render.densities import laplace_cdf
-from l3d_app.render.samplers import stratified_samples
-from l3d_app.render.volume import VolumeRenderer, composite, render_rays_chunked
-from l3d_app.runtime.media import save_gif, save_png
+from l3d_app.registry import DATASETS, SAMPLERS, TASKS
+from l3d_app.models.sdf_box import SDFBox
+from l3d_app.render.evaluation import render_views
+from l3d_app.render.turntable import data_up, orbit_cameras, write_turntable
+from l3d_app.render.volume import render_rays_chunked
+from l3d_app.runtime.optim import build_optimizer
+from l3d_app.runtime.media import save_png
 from l3d_app.runtime.paths import resolve_path
+from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import require_positive
-
-
-class SDFBox(torch.nn.Module):
-    """Learnable box: ``center`` (3,) and ``size`` (3,) side lengths, world units."""
-
-    def __init__(self, center=(0.0, 0.0, 0.0), size=(1.5, 1.5, 1.5), alpha: float = 1.0, beta: float = 0.05):
-        super().__init__()
-        self.center = torch.nn.Parameter(torch.tensor(center, dtype=torch.float32))
-        self.size = torch.nn.Parameter(torch.tensor(size, dtype=torch.float32))
-        self.alpha, self.beta = float(alpha), float(beta)
-
-    def field(self, points: torch.Tensor, dirs: torch.Tensor = None):
-        """points (N, 3) -> (opacity (N,) in [0, 1], rgb (N, 3)) by the course's rule."""
-        opacity = self.alpha * laplace_cdf(-box_sdf(points, self.center, self.size), self.beta)
-        rgb = (points - self.center).abs().clamp(0.02, 0.98)
-        return opacity, rgb
-
-    def render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, n_samples: int = 64,
-                    near: float = 0.0, far: float = 5.0) -> Dict[str, torch.Tensor]:
-        """origins, unit dirs (R, 3) -> {"color": (R, 3)} on a black background."""
-        t = stratified_samples(near, far, n_samples, n_rays=origins.shape[0],
-                               dtype=origins.dtype, device=origins.device)
-        points = origins[:, None, :] + t[..., None] * dirs[:, None, :]
-        opacity, rgb = self.field(points)
-        return {"color": composite(rgb, t, alphas=opacity)["color"]}
 
 
 @TASKS.register("box")
@@ -77,26 +52,23 @@ def box(cfg, ctx) -> dict:
     n_pix = flat_o.shape[0]
 
     model = SDFBox(cfg.init_center, cfg.init_size, alpha=float(cfg.alpha), beta=float(cfg.beta)).to(ctx.device)
-    opt = torch.optim.Adam(model.parameters(), lr=float(cfg.lr))
     iters = int(cfg.iters)
-    gamma = float(cfg.lr_final_factor) ** (1.0 / max(iters, 1))
-    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
-    trainable = Trainable({"box": model}, opt, schedulers=[sched])
-    render_kw = dict(n_samples=int(cfg.n_samples), near=float(cfg.near), far=float(cfg.far))
+    opt, scheds = build_optimizer(cfg.optim, model.parameters(), iters)
+    trainable = Trainable({"box": model}, opt, schedulers=scheds)
+    sampler = SAMPLERS.build(cfg.sampler)
     gt_c = torch.tensor(list(cfg.true_center), dtype=torch.float32, device=ctx.device)
     gt_s = torch.tensor(list(cfg.true_size), dtype=torch.float32, device=ctx.device)
     stride = int(cfg.eval_stride)
     chunk = int(cfg.chunk)
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
-        idx = torch.randint(0, n_pix, (int(cfg.batch_rays),), generator=ctx.generator,
-                            device=ctx.generator.device).to(ctx.device)
-        pred = model.render_rays(flat_o[idx], flat_d[idx], **render_kw)["color"]
+        idx = randint(0, n_pix, (int(cfg.batch_rays),), ctx.generator, ctx.device)
+        pred = model.render_rays(flat_o[idx], flat_d[idx], sampler)["color"]
         return {"loss": ((pred - flat_rgb[idx]) ** 2).mean()}
 
     def render_views(s: int) -> torch.Tensor:
         o, d = origins[:, ::s, ::s], dirs[:, ::s, ::s]
-        return render_rays_chunked(lambda a, b: model.render_rays(a, b, **render_kw), o, d, chunk)["color"]
+        return render_rays_chunked(lambda a, b: model.render_rays(a, b, sampler), o, d, chunk)["color"]
 
     def eval_fn(step: int) -> Dict[str, float]:
         return {"center_error": float((model.center - gt_c).abs().max()),
@@ -112,7 +84,7 @@ def box(cfg, ctx) -> dict:
         final_psnr = float(psnr(final, target))
     save_png(ctx.path("fit_views.png"), torch.cat([torch.cat(list(final), 1), torch.cat(list(target), 1)], 0))
     if int(cfg.gif_frames) > 0:
-        _turntable(cfg, ctx, model)
+        _turntable(cfg, ctx, model, data)
     center, size = model.center.detach().cpu(), model.size.detach().cpu()
     return {
         "box_center": [round(float(v), 6) for v in center],
@@ -128,13 +100,12 @@ def box(cfg, ctx) -> dict:
 
 
 @torch.no_grad()
-def _turntable(cfg, ctx, model: SDFBox) -> None:
-    """A small volume-rendered turntable of the fitted box (NDC focal 1 = 90 degree fov)."""
-    cams = turntable(int(cfg.gif_frames), float(cfg.gif_distance), float(cfg.gif_elevation), 90.0,
-                     int(cfg.gif_size), device=ctx.device)
-    renderer = VolumeRenderer(n_samples=int(cfg.n_samples), near=float(cfg.near), far=float(cfg.far),
-                              chunk=int(cfg.chunk), mode="alpha")
-    frames = renderer(model.field, cams)["image"]
-    save_gif(ctx.path("turntable.gif"), frames, fps=float(cfg.fps))
-    if not bool(torch.isfinite(frames).all()):
-        raise UserError("turntable render produced non-finite values")
+def _turntable(cfg, ctx, model: SDFBox, data) -> None:
+    """A small volume-rendered turntable of the fitted box (NDC focal 1 = 90 degree fov), about
+    the data's up axis."""
+    cams = orbit_cameras(int(cfg.gif_frames), float(cfg.gif_distance), float(cfg.gif_elevation), 90.0,
+                         int(cfg.gif_size), up=data_up(data), device=ctx.device)
+    sampler = SAMPLERS.build(cfg.sampler)
+    render = lambda a, b: {"color": model.render_rays(a, b, sampler)["color"]}  # noqa: E731
+    write_turntable(ctx.path("turntable.gif"), lambda c: render_views(render, c, int(cfg.chunk))["color"], cams,
+                    cfg.fps)

@@ -23,7 +23,6 @@ from typing import Dict
 import torch
 
 from l3d_app.errors import UserError
-from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.marching_cubes import sdf_to_mesh
 from l3d_app.geometry.mesh_io import save_mesh
 from l3d_app.geometry.pointcloud import PointCloud
@@ -35,8 +34,11 @@ from l3d_app.metrics.fscore import fscore
 from l3d_app.models.sdf_net import SDFNetwork
 from l3d_app.registry import DATASETS, TASKS
 from l3d_app.render.sphere_tracing import render_sdf_shaded
+from l3d_app.render.turntable import orbit_cameras
 from l3d_app.render.volume import render_rays_chunked
 from l3d_app.runtime.media import save_gif
+from l3d_app.runtime.optim import build_optimizer
+from l3d_app.runtime.random import rand, randint, randperm
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import require_positive
 
@@ -53,19 +55,19 @@ def neural_sdf(cfg, ctx) -> dict:
     box = (lo.tolist(), hi.tolist())
     radius = float(cfg.init_radius) * 0.5 * float((hi - lo).min())
     net = SDFNetwork(radius=radius, **dict(cfg.model)).to(ctx.device)
-    opt = torch.optim.Adam(net.parameters(), lr=float(cfg.lr))
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, int(cfg.iters)),
-                                                       eta_min=float(cfg.lr) * 0.05)
-    trainable = Trainable({"sdf": net}, opt, schedulers=[sched])
+    opt, scheds = build_optimizer(cfg.optim, net.parameters(), int(cfg.iters))
+    trainable = Trainable({"sdf": net}, opt, schedulers=scheds)
+    # a seeded validation fraction of the cloud: never trained on, read by the periodic evaluation
+    n_val = int(round(float(cfg.val_fraction) * points.shape[0]))
+    perm = randperm(points.shape[0], ctx.generator, ctx.device)
+    val_points, train_points = points[perm[:n_val]], points[perm[n_val:]]
     n = int(cfg.batch_points)
     centre = 0.5 * (lo + hi)
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
-        idx = torch.randint(0, points.shape[0], (n,), generator=ctx.generator,
-                            device=ctx.generator.device).to(ctx.device)
-        u = torch.rand(n, 3, generator=ctx.generator, device=ctx.generator.device).to(ctx.device)
-        q = lo + u * (hi - lo)
-        x = torch.cat([points[idx], q]).requires_grad_(True)
+        idx = randint(0, train_points.shape[0], (n,), ctx.generator, ctx.device)
+        q = lo + rand((n, 3), ctx.generator, ctx.device) * (hi - lo)
+        x = torch.cat([train_points[idx], q]).requires_grad_(True)
         f = net(x)[0]
         (grad,) = torch.autograd.grad(f.sum(), x, create_graph=True)
         surf = f[:n].abs().mean()
@@ -74,15 +76,17 @@ def neural_sdf(cfg, ctx) -> dict:
         loss = surf + float(cfg.w_eikonal) * eik + float(cfg.w_offsurface) * off
         return {"loss": loss, "surface": surf.detach(), "eikonal": eik.detach(), "offsurface": off.detach()}
 
-    def eval_fn(step: int) -> Dict[str, float]:
-        return {"surface_abs": float(net(points)[0].abs().mean())}
+    def eval_fn(step: int) -> Dict[str, float]:     # mean |f| at held-out cloud points (world units)
+        return {"surface_abs": float(net(val_points)[0].abs().mean())}
 
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
+        result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn if n_val else None,
+                       eval_every=int(cfg.eval_every),
                        checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="neural_sdf")
     metrics: Dict[str, float] = {"iters": result.step, "n_params": sum(p.numel() for p in net.parameters()),
                                  "n_points": int(points.shape[0]),
-                                 "surface_abs": round(result.metrics.get("surface_abs", float("nan")), 6)}
+                                 "val_surface_abs": round(result.metrics.get("surface_abs", float("nan")), 6),
+                                 "history": result.history_rows()}
     sdf = net.sdf
     fmt = str(cfg.mesh_format).lower().lstrip(".")
     if fmt not in ("ply", "obj"):
@@ -101,8 +105,8 @@ def neural_sdf(cfg, ctx) -> dict:
         metrics["f1"] = round(fscore(pred, ref, float(cfg.f1_threshold))["f1"], 4)
     if int(cfg.gif_frames) > 0:
         ext = float((hi - lo).norm())
-        cams = turntable(int(cfg.gif_frames), 1.6 * ext, float(cfg.gif_elevation), 45.0, int(cfg.gif_size),
-                         at=centre.tolist(), device=ctx.device)
+        cams = orbit_cameras(int(cfg.gif_frames), 1.6 * ext, float(cfg.gif_elevation), 45.0, int(cfg.gif_size),
+                             up=getattr(cloud, "up", None), at=centre.tolist(), device=ctx.device)  # +Y unless known
         o, d = camera_rays(cams, normalize=True)
         frames = render_rays_chunked(lambda a, b: {"rgb": render_sdf_shaded(sdf, a, b, box)}, o, d, 8192)["rgb"]
         save_gif(ctx.path("mesh.gif"), frames, fps=float(cfg.fps))

@@ -49,159 +49,30 @@ view over iterations.
 from __future__ import annotations
 
 import math
-from typing import Callable, Dict, Optional
+from typing import Dict
 
 import torch
-import torch.nn.functional as F
+
 
 from l3d_app.diffusion.view_prompts import VIEWS, ViewPrompts, sample_orbit_cameras
 from l3d_app.errors import UserError
+from l3d_app.diffusion.registry import PRIORS
 from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.cameras import Cameras
-from l3d_app.geometry.rays import camera_rays
 from l3d_app.losses.nerf_regularizers import density_normals, opacity_entropy, orientation_penalty
 from l3d_app.losses.sds import rgb_to_model_space, sds_loss
-from l3d_app.registry import MODELS, TASKS
-from l3d_app.render.occupancy import OccupancyGrid
-from l3d_app.render.radiance import render_field_rays
-from l3d_app.render.volume import render_rays_chunked
+from l3d_app.metrics.prompt_match import score_frames, score_metrics
+from l3d_app.models.blob_field import BlobField
+from l3d_app.registry import MODELS, SAMPLERS, TASKS
+from l3d_app.render.evaluation import depth_picture
+from l3d_app.render.field_shading import (SCENE_BOX, SHADINGS, normals_as_latent, render_shaded_views,
+                                          shading_sampler)
 from l3d_app.runtime.media import save_gif, save_png
+from l3d_app.runtime.optim import build_optimizer
+from l3d_app.runtime.random import randn
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import require_positive
-from l3d_app.tasks.sds_mesh import load_prior, score_frames, score_metrics
 
-SHADINGS = ("albedo", "lambertian", "textureless", "normal")
-SCENE_BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
-# channels of the shaded field's output: colour (3) | orientation penalty (1) | normal (3)
-N_CHANNELS = 7
-
-
-class BlobField(torch.nn.Module):
-    """``field`` with its density multiplied by ``exp(blob_density * exp(-|x|^2 / (2 r^2)))``.
-
-    ``forward(points (N, 3), dirs (N, 3)) -> (sigma (N,), rgb (N, 3))`` like the wrapped field.
-    """
-
-    def __init__(self, field: torch.nn.Module, blob_density: float = 5.0, blob_radius: float = 0.5):
-        super().__init__()
-        if blob_radius <= 0:
-            raise UserError(f"blob_radius must be > 0, got {blob_radius}")
-        self.field, self.blob_density, self.blob_radius = field, float(blob_density), float(blob_radius)
-
-    def blob(self, points: torch.Tensor) -> torch.Tensor:
-        return self.blob_density * torch.exp(-(points * points).sum(-1) / (2 * self.blob_radius ** 2))
-
-    def density(self, points: torch.Tensor) -> torch.Tensor:
-        return self.field.density(points) * torch.exp(self.blob(points))
-
-    def forward(self, points: torch.Tensor, dirs: torch.Tensor):
-        sigma, rgb = self.field(points, dirs)
-        return sigma * torch.exp(self.blob(points)), rgb
-
-
-def shaded_field(field: BlobField, shading: str, light_offset: torch.Tensor, ambient: float,
-                 need_normals: bool, create_graph: bool) -> Callable:
-    """A field callable for the volume renderer returning ``N_CHANNELS`` per sample:
-    shaded colour (3), orientation penalty max(0, n.d)^2 (1) and unit normal (3).
-
-    ``light_offset`` (3,) is added to the direction towards the camera (``-dirs``) to make
-    the light direction. Without ``need_normals`` (albedo only) the last 4 channels are 0.
-    """
-    if shading not in SHADINGS:
-        raise UserError(f"unknown shading '{shading}' (known: {', '.join(SHADINGS)})")
-    need_normals = need_normals or shading != "albedo"
-
-    def fn(points: torch.Tensor, dirs: torch.Tensor):
-        if not need_normals:
-            sigma, albedo = field(points, dirs)
-            return sigma, torch.cat([albedo, albedo.new_zeros(albedo.shape[0], 4)], dim=-1)
-        with torch.enable_grad():
-            x = points.detach().requires_grad_(True)
-            sigma, albedo = field(x, dirs)
-            normals = density_normals(sigma, x, create_graph=create_graph)
-        if not create_graph:
-            sigma, albedo, normals = sigma.detach(), albedo.detach(), normals.detach()
-        light = F.normalize(-dirs + light_offset.to(dirs), dim=-1)
-        diffuse = ambient + (1.0 - ambient) * (normals * light).sum(-1, keepdim=True).clamp_min(0.0)
-        if shading == "albedo":
-            colour = albedo
-        elif shading == "lambertian":
-            colour = albedo * diffuse
-        elif shading == "textureless":
-            colour = diffuse.expand(-1, 3)
-        else:
-            colour = (normals + 1.0) / 2.0
-        orient = orientation_penalty(normals, dirs)[:, None]
-        return sigma, torch.cat([colour, orient, normals], dim=-1)
-
-    return fn
-
-
-def render_views(field: BlobField, cams: Cameras, shading: str, *, n_samples: int, background,
-                 light_offset: Optional[torch.Tensor] = None, ambient: float = 0.3,
-                 need_normals: bool = True, training: bool = False,
-                 generator: Optional[torch.Generator] = None, chunk: int = 0,
-                 grid: Optional[OccupancyGrid] = None) -> Dict[str, torch.Tensor]:
-    """Render B cameras -> image (B, H, W, 3), opacity (B, H, W), depth (B, H, W) (sum w t),
-    orient (B, H, W) (sum w max(0, n.d)^2), normal (B, H, W, 3) (sum w n).
-
-    ``training`` jitters the samples and keeps the graph (also through the normals).
-    ``chunk`` > 0 renders that many rays per call (evaluation, without a graph). ``grid``:
-    samples in its empty cells are skipped (density 0 there).
-    """
-    origins, dirs = camera_rays(cams, normalize=True)
-    if light_offset is None:
-        light_offset = torch.zeros(3, device=origins.device)
-    fn = shaded_field(field, shading, light_offset, ambient, need_normals, create_graph=training)
-    bg = torch.zeros(N_CHANNELS, device=origins.device)
-    bg[:3] = torch.as_tensor(background, dtype=torch.float32, device=origins.device)
-
-    def render(o, d):
-        out = render_field_rays(fn, o, d, scene_box=SCENE_BOX, n_samples=n_samples, perturb=training,
-                                generator=generator, background=bg, grid=grid)
-        return {"color": out["color"], "opacity": out["opacity"], "depth": out["depth"]}
-
-    if chunk > 0:
-        out = render_rays_chunked(render, origins, dirs, chunk)
-    else:
-        flat = render(origins.reshape(-1, 3), dirs.reshape(-1, 3))
-        out = {k: v.reshape(*origins.shape[:-1], *v.shape[1:]) for k, v in flat.items()}
-    c = out["color"]
-    return {"image": c[..., :3], "orient": c[..., 3], "normal": c[..., 4:7], "opacity": out["opacity"],
-            "depth": out["depth"]}
-
-
-def normals_as_latent(out: Dict[str, torch.Tensor]) -> torch.Tensor:
-    """(B, 4, H, W) latent from a render: composited normals (3, in [-1, 1]) and 2 opacity - 1."""
-    return torch.cat([out["normal"], 2.0 * out["opacity"][..., None] - 1.0], dim=-1).permute(0, 3, 1, 2)
-
-
-def shading_sampler(probs) -> Callable[[torch.Generator], str]:
-    """Draw a shading name with the configured probabilities (normalised; all >= 0)."""
-    names = list(probs.keys())
-    unknown = [n for n in names if n not in SHADINGS]
-    if unknown:
-        raise UserError(f"unknown shading '{unknown[0]}' in shading_probs (known: {', '.join(SHADINGS)})")
-    p = torch.tensor([float(probs[n]) for n in names])
-    if bool((p < 0).any()) or float(p.sum()) <= 0:
-        raise UserError(f"shading_probs must be >= 0 with a positive sum, got {dict(probs)}")
-    cdf = torch.cumsum(p / p.sum(), 0)
-
-    def draw(generator: torch.Generator) -> str:
-        u = float(torch.rand((), generator=generator, device=generator.device))
-        return names[min(int(torch.searchsorted(cdf, torch.tensor(u))), len(names) - 1)]
-
-    return draw
-
-
-def depth_gray(depth: torch.Tensor, opacity: torch.Tensor) -> torch.Tensor:
-    """(N, H, W, 3) depth picture: white = near, dark = far over the opaque pixels, black = empty."""
-    d = depth / opacity.clamp_min(1e-6)
-    hit = opacity > 0.5
-    lo = d[hit].min() if bool(hit.any()) else d.min()
-    hi = d[hit].max() if bool(hit.any()) else d.max()
-    gray = torch.where(hit, 1.0 - 0.8 * (d - lo) / (hi - lo).clamp_min(1e-6), torch.zeros_like(d))
-    return gray[..., None].expand(*gray.shape, 3)
 
 
 def _view_dependent(cfg) -> bool:
@@ -221,7 +92,7 @@ def sds_nerf(cfg, ctx) -> dict:
         raise UserError(f"latent_iter_ratio must be in [0, 1], got {cfg.latent_iter_ratio}")
     if not 0.0 <= float(cfg.ambient) <= 1.0:
         raise UserError(f"ambient must be in [0, 1], got {cfg.ambient}")
-    prior = load_prior(cfg, ctx.device)
+    prior = PRIORS.build(cfg.prior, device=ctx.device)
     prompt = str(cfg.prompt)
     overrides = {str(k): str(v) for k, v in dict(cfg.get("view_prompts") or {}).items() if v}
     views = ViewPrompts.build(prior, prompt, _view_dependent(cfg), str(cfg.view_template), overrides,
@@ -238,31 +109,27 @@ def sds_nerf(cfg, ctx) -> dict:
     n_params = sum(p.numel() for p in field.parameters())
     draw_shading = shading_sampler(dict(cfg.shading_probs))
     bg = [float(c) for c in cfg.background]
-    render_kw = dict(n_samples=int(cfg.n_samples), background=bg, ambient=float(cfg.ambient))
+    render_kw = dict(n_samples=int(cfg.n_samples), background=bg, ambient=float(cfg.ambient),
+                     normals_fn=density_normals, penalty_fn=orientation_penalty)
     ranges = {k: list(cfg[k]) for k in ("distance_range", "elevation_range", "fov_range")}
     lam_e, lam_o = float(cfg.lambda_entropy), float(cfg.lambda_orient)
-    opt = torch.optim.Adam(field.parameters(), lr=float(cfg.lr), eps=1e-15)
-    grid, extra = None, {}
-    if bool(cfg.occupancy.enabled):
-        grid = OccupancyGrid(SCENE_BOX, resolution=int(cfg.occupancy.resolution),
-                             threshold=float(cfg.occupancy.threshold), decay=float(cfg.occupancy.decay),
-                             warmup_steps=int(cfg.occupancy.warmup_steps),
-                             update_every=int(cfg.occupancy.update_every)).to(ctx.device)
-        grid.update(field.density, 0, ctx.generator, force=True)     # start from the blob's extent
-        extra["occupancy"] = grid
-    render_kw["grid"] = grid
-    trainable = Trainable({"field": field}, opt, extra=extra)
+    opt, scheds = build_optimizer(cfg.optim, field.parameters(), int(cfg.iters))
+    sampler = SAMPLERS.build(cfg.sampler, scene_box=SCENE_BOX).to(ctx.device)
+    sampler.update(0, field, ctx.generator)          # an occupancy grid starts from the blob's extent
+    render_kw["estimator"] = sampler
+    trainable = Trainable({"field": field}, opt, extra={"sampler": sampler}, schedulers=scheds)
     gen = ctx.generator
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
+        sampler.update(step, field, gen)
         latent = step < latent_iters
         side = prior.latent_shape[-1] if latent else size
         cams, azim, elev = sample_orbit_cameras(int(cfg.batch_views), side, gen, distance=ranges["distance_range"],
                                                 elevation=ranges["elevation_range"], fov=ranges["fov_range"],
                                                 device=ctx.device)
         shading = "normal" if latent else draw_shading(gen)
-        offset = float(cfg.light_jitter) * torch.randn(3, generator=gen, device=gen.device).to(ctx.device)
-        out = render_views(field, cams, shading, light_offset=offset, training=True, generator=gen,
+        offset = float(cfg.light_jitter) * randn((3,), gen, ctx.device)
+        out = render_shaded_views(field, cams, shading, light_offset=offset, training=True, generator=gen,
                            need_normals=latent or (lam_o > 0 and shading != "albedo"), **render_kw)
         x = normals_as_latent(out) if latent else rgb_to_model_space(prior, out["image"], channels_last=True)
         sds = sds_loss(prior, x, views.embedding(azim, elev), float(cfg.guidance_scale), float(cfg.t_min),
@@ -279,7 +146,7 @@ def sds_nerf(cfg, ctx) -> dict:
                          float(cfg.eval_fov), int(cfg.gif_size) or size, device=ctx.device)
 
     def render_turntable(cams: Cameras, shading: str) -> Dict[str, torch.Tensor]:
-        return {k: v.detach() for k, v in render_views(field, cams, shading, chunk=int(cfg.chunk),
+        return {k: v.detach() for k, v in render_shaded_views(field, cams, shading, chunk=int(cfg.chunk),
                                                        need_normals=False, **render_kw).items()}
 
     def eval_fn(step: int) -> Dict[str, float]:
@@ -289,19 +156,15 @@ def sds_nerf(cfg, ctx) -> dict:
         rate = score_frames(out["image"].clamp(0, 1), prompt)["match"]
         return {"opacity": float(out["opacity"].mean()), **({} if rate is None else {"match_rate": rate})}
 
-    def after_step(step: int) -> None:
-        if grid is not None:
-            grid.update(field.density, step, gen)
-
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
                        checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="sds_nerf",
-                       after_step=after_step)
+                       )
     with ctx.stopwatch.stage("render"):
         colour = render_turntable(cams_360, "albedo")
         plain = render_turntable(cams_360, "textureless")
     frames = torch.cat([colour["image"].clamp(0, 1), plain["image"].clamp(0, 1),
-                        depth_gray(colour["depth"], colour["opacity"])], dim=2)
+                        depth_picture(colour["depth"], colour["opacity"])], dim=2)
     if not bool(torch.isfinite(frames).all()):
         raise UserError("the optimised field rendered non-finite values")
     save_gif(ctx.path("sds_nerf.gif"), frames, fps=float(cfg.fps))
@@ -318,7 +181,7 @@ def sds_nerf(cfg, ctx) -> dict:
         "orientation": round(float(plain["orient"].mean()), 6),
         "guidance_scale": float(cfg.guidance_scale),
         "latent_iters": min(latent_iters, result.step),
-        "occupied_fraction": round(grid.occupied_fraction, 5) if grid is not None else 1.0,
+        **{k: round(v, 5) for k, v in sampler.stats().items()},
         "iters": result.step,
         "n_params": n_params,
         "render_size": size,

@@ -1,0 +1,66 @@
+"""Meshes of fields: marching cubes of a level set with optional vertex colours, saved as
+PLY (vertex colours) and GLB (trimesh; vertex colours as COLOR_0)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from l3d_app.errors import UserError
+from l3d_app.geometry.marching_cubes import sdf_to_mesh
+from l3d_app.geometry.mesh import Mesh
+from l3d_app.geometry.mesh_io import save_mesh
+from l3d_app.runtime.files import atomic_path
+
+ColorFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+@torch.no_grad()
+def extract_mesh(level_fn: Callable[[torch.Tensor], torch.Tensor], box: Tuple[Sequence[float], Sequence[float]],
+                 resolution: int = 128, level: float = 0.0, color_fn: Optional[ColorFn] = None,
+                 device=None) -> Optional[Mesh]:
+    """Mesh of ``{p : level_fn(p) = level}`` (``level_fn`` (N, 3) -> (N,), positive outside,
+    e.g. an SDF or minus a density) over ``box``; None when the level set does not cross the grid.
+
+    ``color_fn(points (V, 3), outward normals (V, 3)) -> rgb (V, 3)`` colours the vertices
+    (e.g. a radiance field looking along ``-normal``); clamped to [0, 1].
+    """
+    fn = lambda p: level_fn(p.reshape(-1, 3)).reshape(p.shape[:-1])  # noqa: E731
+    try:
+        mesh = sdf_to_mesh(fn, resolution=int(resolution), bounds=(list(box[0]), list(box[1])), level=float(level),
+                           colors=None, device=device)
+    except UserError:
+        return None
+    if color_fn is not None:
+        rgb = color_fn(mesh.verts, mesh.vertex_normals()).clamp(0, 1)
+        mesh = Mesh(verts=mesh.verts, faces=mesh.faces, vert_colors=rgb)
+    return mesh
+
+
+def save_glb(mesh: Mesh, path) -> Path:
+    """Write ``mesh`` (with its vertex colours, if any) as binary glTF through trimesh."""
+    import trimesh
+
+    colors = None
+    if getattr(mesh, "vert_colors", None) is not None:
+        colors = (mesh.vert_colors.detach().cpu().clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+    tm = trimesh.Trimesh(mesh.verts.detach().cpu().numpy(), mesh.faces.detach().cpu().numpy(),
+                         vertex_colors=colors, process=False)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(tm.export(file_type="glb"))
+    return Path(path)
+
+
+def save_field_mesh(mesh: Mesh, stem, formats: Sequence[str] = ("ply", "glb")) -> list:
+    """Write ``stem.<fmt>`` for each of ``formats`` (ply | obj | glb); returns the paths."""
+    paths = []
+    for fmt in formats:
+        fmt = str(fmt).lower().lstrip(".")
+        if fmt not in ("ply", "obj", "glb"):
+            raise UserError(f"mesh format must be ply, obj or glb, got {fmt!r}")
+        path = Path(f"{stem}.{fmt}")
+        paths.append(save_glb(mesh, path) if fmt == "glb" else save_mesh(mesh, path))
+    return paths
