@@ -49,6 +49,7 @@ def run_method(method: str, scene: Path, out: Path, threads: int, baseline_budge
     if reuse and (run_dir / "metrics.json").is_file():
         return json.loads((run_dir / "metrics.json").read_text())
     cmd = [sys.executable, str(REPO / "main.py"), f"task={method}", "data=blender", f"data.root={scene}",
+           "data.mesh_path=mesh.ply",
            f"threads={threads}", f"hydra.run.dir={run_dir}", *EXTRA.get(method, []), *overrides]
     if method == "nerf_baseline":
         cmd.append(f"time_budget={baseline_budget}")

@@ -212,3 +212,19 @@ def test_colmap_nan_pose(tmp_path):
     imgs.write_text("\n".join(out) + "\n")
     with pytest.raises(UserError, match=r"images.txt: img_001.png: camera pose has a non-finite"):
         colmap(str(tmp_path))
+
+
+def test_blender_mesh_path_loads_the_true_surface_or_names_the_missing_file(tmp_path):
+    import trimesh
+
+    from l3d_app.data.nerf_formats import blender
+
+    write_blender(tmp_path)
+    box = trimesh.creation.box((0.4, 0.6, 0.8))
+    box.export(tmp_path / "mesh.ply")
+    data = blender(root=str(tmp_path), mesh_path="mesh.ply")
+    ext = (data.mesh.verts.max(0).values - data.mesh.verts.min(0).values).tolist()
+    assert ext == pytest.approx([0.4, 0.6, 0.8], abs=1e-6) and data.mesh.faces.shape == (12, 3)
+    assert blender(root=str(tmp_path)).mesh is None
+    with pytest.raises(UserError, match="no_such.ply"):
+        blender(root=str(tmp_path), mesh_path="no_such.ply")

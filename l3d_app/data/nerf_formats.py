@@ -76,10 +76,12 @@ def _to_float_rgb(img: np.ndarray, bg: torch.Tensor, downscale: int) -> torch.Te
 @DATASETS.register("blender")
 def blender(root: str = None, background="white", downscale: int = 1,
             scene_box: Sequence[Sequence[float]] = ((-1.5,) * 3, (1.5,) * 3), max_views: int = 0,
-            val_every: int = 8, device=None) -> MultiViewData:
+            val_every: int = 8, mesh_path: str = None, device=None) -> MultiViewData:
     """A NeRF-synthetic folder (see the module docstring); ``max_views`` > 0 keeps the first
     views of each split (quick runs); ``val_every`` carves validation from train when the
-    folder has no ``transforms_val.json``."""
+    folder has no ``transforms_val.json``; ``mesh_path`` (relative to ``root`` or absolute):
+    the true surface, in the cameras' world frame, for the surface scores (e.g. the
+    ``mesh.ply`` that ``bench/make_scenes.py`` writes)."""
     if root is None or not str(root).strip() or str(root) == "???":
         raise UserError("data=blender needs a folder: add data.root=DIR (with transforms_train.json ...)")
     folder = resolve_path(str(root))
@@ -136,8 +138,16 @@ def blender(root: str = None, background="white", downscale: int = 1,
     if not (folder / "transforms_val.json").is_file():
         splits["train"], splits["val"] = carve_val(splits["train"], int(val_every))
     box = torch.tensor(scene_box, dtype=torch.float32).reshape(2, 3)
+    mesh = None
+    if mesh_path:
+        from l3d_app.geometry.mesh_io import load_mesh
+
+        mesh_file = Path(mesh_path) if Path(mesh_path).is_absolute() else folder / str(mesh_path)
+        if not mesh_file.is_file():
+            raise UserError(f"data.mesh_path: no such file {mesh_file}")
+        mesh = load_mesh(mesh_file)
     data = MultiViewData(torch.stack(images), stack_cameras(cams), splits["train"], splits["val"], splits["test"],
-                         bg, box, name=f"blender:{folder.name}", up=torch.tensor([0.0, 0.0, 1.0]))
+                         bg, box, name=f"blender:{folder.name}", up=torch.tensor([0.0, 0.0, 1.0]), mesh=mesh)
     return data if device is None else data.to(device)
 
 

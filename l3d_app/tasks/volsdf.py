@@ -193,14 +193,9 @@ def gradient_at(model, points: torch.Tensor) -> torch.Tensor:
 
 
 def _ground_truth(cfg, data):
-    """The data's true surface: ``data.mesh`` when the dataset carries one; until the built-in
-    loader does, the built-in scene's own mesh (None for any other source)."""
-    mesh = getattr(data, "mesh", None)
-    if mesh is None and str(cfg.data.name) == "nerf_builtin":      # TODO(inputs): drop once data.mesh exists
-        from l3d_app.data.nerf_views import nerf_scene
-
-        mesh = nerf_scene()
-    return mesh
+    """The data's true surface: ``data.mesh`` when the dataset carries one (the built-in
+    scene does; ``data=blender data.mesh_path=FILE`` loads one), else None."""
+    return getattr(data, "mesh", None)
 
 
 @torch.no_grad()
