@@ -55,9 +55,6 @@ KNOWN: Dict[tuple, str] = {
     ("layers", "l3d_app.metrics.surface_scores"): "rays: tasks/volsdf.py must pass depth_maps="
                                                   "render.rgbd.true_depth_maps(truth, cams, scale=4); "
                                                   "then house's temporary render fallback goes",
-    ("no_task_imports_task", "l3d_app.tasks.pointnet_cls"): "points (-> point_learning)",
-    ("no_task_imports_task", "l3d_app.tasks.pointnet_seg"): "points (-> point_learning)",
-    ("no_task_imports_task", "l3d_app.tasks.pointnet_robustness"): "points (-> point_learning)",
 }
 
 

@@ -15,7 +15,7 @@ from l3d_app.data.shape_parts import CLASS_NAMES, PART_NAMES, lathe, shape_parts
 from l3d_app.errors import UserError
 from l3d_app.models.dgcnn import dgcnn
 from l3d_app.models.pointnet import pointnet
-from l3d_app.tasks.point_learning import rotate, rotations
+from l3d_app.tasks.point_common import rotate, rotations
 
 CHAIR_PARTS = {PART_NAMES.index(p) for p in ("chair/seat", "chair/back", "chair/legs", "chair/arms")}
 

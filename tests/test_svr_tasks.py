@@ -96,8 +96,6 @@ def test_training_beats_the_untrained_model(compose, tmp_path):
     assert after["chamfer"] < 0.5 * before["chamfer"], (before["chamfer"], after["chamfer"])
     assert after["f1@0.1"] > before["f1@0.1"] + 0.1, (before["f1@0.1"], after["f1@0.1"])
     assert after["f1"] >= before["f1"], (before["f1"], after["f1"])
-    assert after["f1@0.1"] > before["f1@0.1"] + 0.15, (before["f1@0.1"], after["f1@0.1"])  # 0.137 -> 0.387
-    assert after["chamfer"] < 0.6 * before["chamfer"], (before["chamfer"], after["chamfer"])
 
 
 def test_w_smooth_reaches_the_mesh_decoder(compose):

@@ -7,13 +7,13 @@
 Writes best.pt (best VALIDATION accuracy so far; test read once at the end), checkpoint.pt (resume), confusion_matrix.png,
 vis/*.gif (random test clouds coloured by predicted class, one failure per class) and
 metrics.json (accuracy, per-class accuracy, seconds, n_params, ...). See
-:mod:`l3d_app.tasks.point_learning`.
+:mod:`l3d_app.tasks.point_common`.
 """
 
 from __future__ import annotations
 
 from l3d_app.registry import TASKS
-from l3d_app.tasks.point_learning import run_point_task
+from l3d_app.tasks.point_common import run_point_task
 
 
 @TASKS.register("pointnet_cls")

@@ -32,7 +32,7 @@ from l3d_app.registry import TASKS
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.seed import seed_everything
-from l3d_app.tasks.point_learning import evaluate, fit, load_data, load_model, rotations
+from l3d_app.tasks.point_common import evaluate, fit, load_data, load_model, rotations
 
 
 def _table(title: str, header: str, rows: Dict[Any, float]) -> str:

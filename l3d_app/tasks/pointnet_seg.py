@@ -6,13 +6,13 @@
 Writes best.pt, checkpoint.pt, confusion_matrix.png (parts), vis/*.gif (truth | prediction
 side by side, random test clouds and the worst cloud of each class) and metrics.json
 (``accuracy`` = point accuracy, ``miou``, per-part IoU, seconds, n_params, ...). See
-:mod:`l3d_app.tasks.point_learning`.
+:mod:`l3d_app.tasks.point_common`.
 """
 
 from __future__ import annotations
 
 from l3d_app.registry import TASKS
-from l3d_app.tasks.point_learning import run_point_task
+from l3d_app.tasks.point_common import run_point_task
 
 
 @TASKS.register("pointnet_seg")
