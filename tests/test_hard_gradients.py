@@ -100,12 +100,8 @@ def test_float32_transmittance_with_huge_optical_depths_matches_float64_gradient
     assert abs(float(gs[1, 5])) > 1e8                                # 1e10 * T_5 e^-1 (c . g)
 
 
-@pytest.mark.xfail(strict=True, reason="BUG render/volume.py composite (float32): d colour / d sigma of a "
-                   "segment with tau = sigma * delta > ~16.6 is 0 (at tau = 17: 0.0 vs the float64 374.6; at "
-                   "tau = 10 off by 4e-4 relative). alpha = -expm1(-tau), and torch's expm1 backward forms "
-                   "exp(-tau) as (result + 1), which rounds to 0 in float32; the far 1e10-long last segment "
-                   "then never learns. Fix: weights from exp(log T_i) - exp(log T_{i+1}) or a custom "
-                   "d alpha / d tau = exp(-tau).")
+# was a bug (torch's expm1 backward forms exp(-tau) as result + 1, 0 in float32 for tau > ~16.6);
+# composite now takes d alpha / d tau = exp(-tau) directly (render/volume.py: opacity_from_optical_depth)
 @pytest.mark.parametrize("tau", [10.0, 17.0, 20.0])
 def test_float32_gradient_of_a_long_last_segment_matches_float64(tau):
     s = torch.tensor([[0.1, tau * 1e-10]], dtype=torch.float32, requires_grad=True)

@@ -55,6 +55,31 @@ def _exclusive_cumsum(x: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.zeros_like(x[:, :1]), torch.cumsum(x[:, :-1], dim=-1)], dim=-1)
 
 
+class _OpacityFromOpticalDepth(torch.autograd.Function):
+    """alpha = 1 - exp(-tau) = -expm1(-tau), with d alpha / d tau = exp(-tau) computed directly.
+
+    torch's own expm1 backward rebuilds exp(-tau) as ``result + 1``, which is 0 in float32
+    once tau > ~16.6 (and loses relative accuracy well before), so a long, dense segment (the
+    1e10-long last one) would get no gradient at all.
+    """
+
+    @staticmethod
+    def forward(ctx, tau):
+        ctx.save_for_backward(tau)
+        return -torch.expm1(-tau)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (tau,) = ctx.saved_tensors
+        return grad * torch.exp(-tau)
+
+
+def opacity_from_optical_depth(tau: torch.Tensor) -> torch.Tensor:
+    """``1 - exp(-tau)`` (any shape; tau >= 0), accurate for small tau and with an exact
+    gradient ``exp(-tau)`` for large tau in float32."""
+    return _OpacityFromOpticalDepth.apply(tau)
+
+
 def composite(colors: torch.Tensor, t: torch.Tensor, sigmas: Optional[torch.Tensor] = None,
               alphas: Optional[torch.Tensor] = None, deltas: Optional[torch.Tensor] = None,
               background: Background = None, last_delta: float = 1e10) -> Dict[str, torch.Tensor]:
@@ -80,9 +105,9 @@ def composite(colors: torch.Tensor, t: torch.Tensor, sigmas: Optional[torch.Tens
         if deltas is None:
             deltas = sample_deltas(t, last_delta)
         tau = sigmas * deltas
-        alpha = -torch.expm1(-tau)
+        alpha = opacity_from_optical_depth(tau)
         log_t = -_exclusive_cumsum(tau)
-        opacity = -torch.expm1(-tau.sum(dim=-1))
+        opacity = opacity_from_optical_depth(tau.sum(dim=-1))
     else:
         alpha = alphas
         eps = torch.finfo(alphas.dtype).eps
