@@ -22,7 +22,7 @@ import torch
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.models.sdf_grid import SDFGridField
 from l3d_app.losses.eikonal import eikonal_loss
-from l3d_app.models.sh import SH_C0
+from l3d_app.render.sh import SH_C0
 from l3d_app.render.densities import LaplaceDensity, volsdf_density
 from l3d_app.render.gaussians import rasterize_gaussians
 from l3d_app.render.neus import neus_alpha

@@ -1,4 +1,4 @@
-"""Real SH basis (degrees 0-3) of l3d_app.models.sh against an independent construction from
+"""Real SH basis (degrees 0-3) of l3d_app.render.sh against an independent construction from
 scipy.special's associated Legendre functions, value AND sign per coefficient, at many
 directions including both poles.
 
@@ -18,7 +18,7 @@ import pytest
 import torch
 from scipy.special import lpmv, sph_harm_y
 
-from l3d_app.models.sh import eval_sh, sh_basis, sh_to_color
+from l3d_app.render.sh import eval_sh, sh_basis, sh_to_color
 from sh_reference import real_sh_3dgs, sh_colour
 
 D = torch.float64

@@ -42,7 +42,7 @@ from typing import Dict, Optional, Sequence, Union
 import torch
 
 from l3d_app.geometry.cameras import Cameras
-from l3d_app.models.sh import sh_to_color
+from l3d_app.render.sh import sh_to_color
 from l3d_app.render.gaussians_project import ProjectFunction, quat_rotation
 from l3d_app.render.gaussians_composite import (ALPHA_MAX, ALPHA_MIN, T_MIN, CompositeFunction, bin_tiles,
                                                 composite_pairs, splat_pixel_pairs)
