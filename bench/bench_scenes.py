@@ -78,13 +78,15 @@ def mesh_scores(mesh_path: Path, scene: Path) -> Dict[str, float]:
     from l3d_app.data.nerf_formats import blender
     from l3d_app.geometry.mesh_io import load_mesh
     from l3d_app.metrics.surface_scores import surface_scores
+    from l3d_app.render.rgbd import true_depth_maps
 
     truth = load_mesh(str(scene / "mesh.ply"))
     pred = load_mesh(str(mesh_path))
     data = blender(root=str(scene), background="white")
     cams = data.cameras[data.train]
-    s05 = surface_scores(pred, truth, cameras=cams, threshold=0.05)
-    s02 = surface_scores(pred, truth, cameras=cams, threshold=0.02)
+    depth = true_depth_maps(truth, cams, scale=4)
+    s05 = surface_scores(pred, truth, cameras=cams, depth_maps=depth, threshold=0.05)
+    s02 = surface_scores(pred, truth, cameras=cams, depth_maps=depth, threshold=0.02)
     return {"chamfer_pct": 100 * s05["chamfer_rel_diag"], "chamfer_obs_pct": 100 * s05["chamfer_observed_rel_diag"],
             "f1_02_obs": s02["f1_observed"], "f1_05_obs": s05["f1_observed"], "f1_05": s05["f1"],
             "phantom_pct": 100 * (1.0 - s05["precision"]), "observed_fraction": s05["observed_fraction"]}

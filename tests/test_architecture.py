@@ -51,9 +51,6 @@ CONFIG_LIBS = ("omegaconf", "hydra")
 
 # (rule, module) -> owner. Remove an entry when its branch fixes it (the test then XPASSes).
 KNOWN: Dict[tuple, str] = {
-    ("layers", "l3d_app.metrics.surface_scores"): "rays: tasks/volsdf.py must pass depth_maps="
-                                                  "render.rgbd.true_depth_maps(truth, cams, scale=4); "
-                                                  "then house's temporary render fallback goes",
 }
 
 

@@ -135,3 +135,13 @@ def test_surface_scores_observed_variant_ignores_the_unseen_bottom():
     assert s["chamfer"] > 0.05                         # the full score sees the wrong bottom
     assert s["chamfer_observed"] < 0.05 * s["chamfer"]  # the seen part is right
     assert s["recall_observed"] == 1.0
+
+
+def test_cameras_without_depth_maps_is_an_error_metrics_do_not_render():
+    import trimesh
+
+    t = trimesh.creation.box((1.0, 1.0, 1.0))
+    cube = Mesh(torch.tensor(t.vertices, dtype=torch.float32), torch.tensor(t.faces, dtype=torch.long))
+    cams = look_at_cameras(3.0, 30.0, torch.tensor([0.0]), 40.0, 16)
+    with pytest.raises(ValueError, match="depth_maps"):
+        surface_scores(cube, cube, cameras=cams)

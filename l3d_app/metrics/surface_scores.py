@@ -46,16 +46,11 @@ def surface_scores(pred: Mesh, truth: Mesh, cameras: Optional[Cameras] = None, n
     """Chamfer / F-score of mesh ``pred`` against mesh ``truth`` (see the module docstring);
     with ``cameras`` (the input views) and ``depth_maps`` (B, h, w), the true surface's depth
     seen by them (:func:`l3d_app.render.rgbd.true_depth_maps`, e.g. at 4x their resolution),
-    also the observed-surface variants. CPU, float64.
-
-    ``cameras`` without ``depth_maps`` still works for now (the depth is rendered here at 4x)
-    but is deprecated: metrics do not render. It goes once volsdf passes ``depth_maps``
-    (tests/test_architecture.py lists it as a known violation).
+    also the observed-surface variants (``cameras`` without ``depth_maps`` is a ValueError:
+    metrics do not render). CPU, float64.
     """
-    if cameras is not None and depth_maps is None:
-        from l3d_app.render.rgbd import true_depth_maps  # TEMPORARY bridge for tasks/volsdf.py
-
-        depth_maps = true_depth_maps(truth.to("cpu"), cameras.to("cpu"), scale=4)
+    if (cameras is None) != (depth_maps is None):
+        raise ValueError("surface_scores: pass both cameras and depth_maps (render.rgbd.true_depth_maps) or neither")
     pred, truth = pred.to("cpu"), truth.to("cpu")
     gen = torch.Generator().manual_seed(int(seed))
     ps = sample_surface(pred, int(n), generator=gen).points
