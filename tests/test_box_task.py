@@ -43,7 +43,7 @@ def test_ground_truth_box_reproduces_the_images():
 def test_box_task_recovers_the_box(compose, tmp_path):
     course_data("box")
     cfg = compose("task=box", "iters=250", "batch_rays=1024", "eval_every=0", "gif_frames=4",
-                  "gif_size=16", "tensorboard=false")
+                  "turntable_size=16", "tensorboard=false")
     run_task(cfg, out_dir=tmp_path)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     for got, want in zip(metrics["box_center"] + metrics["box_size"], TRUE_CENTER + TRUE_SIZE):

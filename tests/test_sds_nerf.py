@@ -22,8 +22,8 @@ def render_views(*args, **kw):
     return render_shaded_views(*args, normals_fn=density_normals, penalty_fn=orientation_penalty, **kw)
 from sds_task_runs import numbers_finite, run_metrics
 
-SMALL = ("iters=4", "eval_every=2", "eval_views=2", "num_frames=2", "n_samples=12", "render_size=16",
-         "gif_size=16", "tensorboard=false", "threads=1")
+SMALL = ("iters=4", "eval_every=2", "eval_views=2", "num_frames=2", "n_samples=12", "image_size=16",
+         "turntable_size=16", "tensorboard=false", "threads=1")
 
 
 # ----------------------------------------------------------------------------- view prompts

@@ -175,7 +175,7 @@ def test_sds_nerf_runs_on_the_tiny_pipeline_with_view_prompts_and_latent_steps(p
 
     cfg = compose("task=sds_nerf", "prior=stable_diffusion", f"prior.path={pipeline_dir}", "iters=2",
                   "latent_iter_ratio=0.5", "eval_every=2", "eval_views=1", "num_frames=2", "n_samples=8",
-                  "render_size=8", "gif_size=8", "guidance_scale=100", "tensorboard=false", "threads=1", "device=cpu",
+                  "image_size=8", "turntable_size=8", "guidance_scale=100", "tensorboard=false", "threads=1", "device=cpu",
                   "prompt=a hamburger")
     run_task(cfg, out_dir=tmp_path)
     m = json.loads((tmp_path / "metrics.json").read_text())

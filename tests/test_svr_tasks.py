@@ -24,7 +24,7 @@ def tiny(cache, *extra):
             "data.train_per_class=2", "data.test_per_class=1", "data.voxel_size=16", "data.num_points=256",
             "data.occupancy_points=256", "data.depth_views=3", "encoder.width=8", "encoder.max_width=16",
             "encoder.latent_dim=16", "batch_size=4", "iters=6", "eval_every=3", "checkpoint_every=3",
-            "quick_eval_objects=2", "eval_points=64", "num_vis=1", "vis_size=24", "num_frames=2",
+            "quick_eval_objects=2", "eval_points=64", "num_vis=1", "turntable_size=24", "num_frames=2",
             "vis_points=64", *extra)
 
 
@@ -57,7 +57,7 @@ def test_train_resume_and_eval(compose, tmp_path, monkeypatch):
 
     ev = tmp_path / "eval"
     run_task(compose("task=svr_eval", "tensorboard=false", f"checkpoint={full}", "eval_points=64",
-                     "num_vis=1", "vis_size=24", "num_frames=2", "vis_points=64"), out_dir=ev)
+                     "num_vis=1", "turntable_size=24", "num_frames=2", "vis_points=64"), out_dir=ev)
     e = read(ev)
     assert e["decoder"] == "svr_point" and e["trained_iters"] == 6
     assert e["f1"] == m["f1"] and e["chamfer"] == pytest.approx(m["chamfer"])

@@ -153,7 +153,7 @@ def test_volsdf_neus_variant_and_knobs_compose(compose, tmp_path):
 
 def test_neural_sdf_fits_the_builtin_torus(compose, tmp_path):
     cfg = compose("task=neural_sdf", "tensorboard=false", "threads=1", "iters=150", "eval_every=50",
-                  "batch_points=512", "mesh_resolution=32", "eval_points=2000", "gif_frames=2", "gif_size=24")
+                  "batch_points=512", "mesh_resolution=32", "eval_points=2000", "gif_frames=2", "turntable_size=24")
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert m["f1"] > 0.6 and m["chamfer"] < 0.15 and m["val_surface_abs"] < 0.02, m

@@ -104,7 +104,7 @@ def _turntable(cfg, ctx, model: SDFBox, data) -> None:
     """A small volume-rendered turntable of the fitted box (NDC focal 1 = 90 degree fov), about
     the data's up axis."""
     cams = orbit_cameras(int(cfg.gif_frames), float(cfg.gif_distance), float(cfg.gif_elevation), 90.0,
-                         int(cfg.gif_size), up=data_up(data), device=ctx.device)
+                         int(cfg.turntable_size), up=data_up(data), device=ctx.device)
     sampler = SAMPLERS.build(cfg.sampler)
     render = lambda a, b: {"color": model.render_rays(a, b, sampler)["color"]}  # noqa: E731
     write_turntable(ctx.path("turntable.gif"), lambda c: render_views(render, c, int(cfg.chunk))["color"], cams,

@@ -105,7 +105,7 @@ def neural_sdf(cfg, ctx) -> dict:
         metrics["f1"] = round(fscore(pred, ref, float(cfg.f1_threshold))["f1"], 4)
     if int(cfg.gif_frames) > 0:
         ext = float((hi - lo).norm())
-        cams = orbit_cameras(int(cfg.gif_frames), 1.6 * ext, float(cfg.gif_elevation), 45.0, int(cfg.gif_size),
+        cams = orbit_cameras(int(cfg.gif_frames), 1.6 * ext, float(cfg.gif_elevation), 45.0, int(cfg.turntable_size),
                              up=getattr(cloud, "up", None), at=centre.tolist(), device=ctx.device)  # +Y unless known
         o, d = camera_rays(cams, normalize=True)
         frames = render_rays_chunked(lambda a, b: {"rgb": render_sdf_shaded(sdf, a, b, box)}, o, d, 8192)["rgb"]

@@ -41,6 +41,7 @@ from l3d_app.metrics.prompt_match import check_image
 from l3d_app.registry import TASKS
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.lr_schedules import warmup_cosine
+from l3d_app.runtime.random import randint, randn
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import require_positive
 
@@ -73,8 +74,7 @@ def sds_image(cfg, ctx) -> dict:
     with torch.no_grad():
         grey = torch.full((1, 3, S, S), 0.5, device=ctx.device)
         x0 = prior.encode(grey).float()
-        x0 = x0 + float(cfg.init_noise) * torch.randn(x0.shape, generator=ctx.generator,
-                                                      device=ctx.generator.device).to(x0.device)
+        x0 = x0 + float(cfg.init_noise) * randn(x0.shape, ctx.generator, x0.device)
     holder = torch.nn.ParameterDict({"x": torch.nn.Parameter(x0)})
     optimizer = torch.optim.Adam(holder.parameters(), lr=float(cfg.lr))
     warmup, final_ratio = int(cfg.get("lr_warmup", 0)), float(cfg.get("lr_final_ratio", 1.0))
@@ -105,8 +105,7 @@ def sds_image(cfg, ctx) -> dict:
     def step(i: int) -> Dict[str, torch.Tensor]:
         x = holder["x"].expand(B, *holder["x"].shape[1:])
         if shift > 0:  # random roll: the prior's patch grid never lines up with the same pixels
-            dy, dx = torch.randint(-shift, shift + 1, (2,), generator=ctx.generator,
-                                   device=ctx.generator.device).tolist()
+            dy, dx = randint(-shift, shift + 1, (2,), ctx.generator).tolist()
             x = torch.roll(x, (dy, dx), dims=(2, 3))
         if t_end is not None:  # anneal the top of the t range linearly: coarse first, details last
             sds.t_max = t_top + (t_end - t_top) * i / max(1, int(cfg.iters) - 1)

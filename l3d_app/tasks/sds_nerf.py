@@ -5,7 +5,7 @@ Model: the fast radiance field of ``train_nerf`` (``model=grid_field``: multi-re
 ``exp(blob_density * exp(-|x|^2 / (2 blob_radius^2)))`` (for the exp activation this adds the
 blob to the raw density, as DreamFusion does), so optimisation starts from a soft ball.
 
-Each step renders ``batch_views`` random orbit cameras at ``render_size`` pixels (0: the
+Each step renders ``batch_views`` random orbit cameras at ``image_size`` pixels (0: the
 prior's image size, at most 64; renders are resized to the prior's size before encoding)
 by volume rendering (ray-box segments, stratified samples,
 :func:`~l3d_app.render.radiance.render_field_rays`), with a shading drawn at random
@@ -103,7 +103,7 @@ def sds_nerf(cfg, ctx) -> dict:
         if latent_iters > 0 and prior.latent_shape[0] != 4:
             raise UserError(f"latent_iter_ratio > 0 needs a 4-channel latent prior, this one has "
                             f"{prior.latent_shape[0]} channels; set latent_iter_ratio=0")
-    size = int(cfg.render_size) if int(cfg.render_size) > 0 else min(int(prior.image_size), 64)
+    size = int(cfg.image_size) if int(cfg.image_size) > 0 else min(int(prior.image_size), 64)
     base = MODELS.build(cfg.model, scene_box=[list(SCENE_BOX[0]), list(SCENE_BOX[1])])
     field = BlobField(base, float(cfg.blob_density), float(cfg.blob_radius)).to(ctx.device)
     n_params = sum(p.numel() for p in field.parameters())
@@ -143,7 +143,7 @@ def sds_nerf(cfg, ctx) -> dict:
                 "shading": torch.tensor(float(SHADINGS.index(shading)))}
 
     cams_360 = turntable(int(cfg.num_frames), float(cfg.eval_distance), float(cfg.eval_elevation),
-                         float(cfg.eval_fov), int(cfg.gif_size) or size, device=ctx.device)
+                         float(cfg.eval_fov), int(cfg.turntable_size) or size, device=ctx.device)
 
     def render_turntable(cams: Cameras, shading: str) -> Dict[str, torch.Tensor]:
         return {k: v.detach() for k, v in render_shaded_views(field, cams, shading, chunk=int(cfg.chunk),
@@ -184,8 +184,8 @@ def sds_nerf(cfg, ctx) -> dict:
         **{k: round(v, 5) for k, v in sampler.stats().items()},
         "iters": result.step,
         "n_params": n_params,
-        "render_size": size,
-        "gif_size": int(cfg.gif_size) or size,
+        "image_size": size,
+        "turntable_size": int(cfg.turntable_size) or size,
         "train_seconds": round(train_s, 4),
         "seconds_per_iter": round(train_s / max(result.step, 1), 5),
         "skipped_steps": result.skipped_steps,

@@ -119,7 +119,7 @@ def visualise(model: SVRModel, data: SVRData, objects: torch.Tensor, views: torc
     from l3d_app.render.mesh_renderer import MeshRenderer
     from l3d_app.render.points import PointRenderer
 
-    size, n_frames = int(cfg.vis_size), int(cfg.num_frames)
+    size, n_frames = int(cfg.turntable_size), int(cfg.num_frames)
     mesh_r = MeshRenderer(shading="lambert", background=(1.0, 1.0, 1.0), light_direction=(0.4, 1.0, 0.7))
     point_r = PointRenderer(radius=float(cfg.vis_point_radius), background=(1.0, 1.0, 1.0))
     was = model.training

@@ -20,7 +20,7 @@ from l3d_app.tasks.svr_common import evaluate_and_report, load_data
 @TASKS.register("svr_eval")
 def svr_eval(cfg, ctx) -> dict:
     model, meta = load_svr_model(cfg.get("checkpoint"), ctx.device)
-    require_positive(cfg, "eval_points", "vis_size")
+    require_positive(cfg, "eval_points", "turntable_size")
     with ctx.stopwatch.stage("data"):
         data = load_data(meta["data_cfg"])
     name = str(meta["decoder_cfg"]["name"])

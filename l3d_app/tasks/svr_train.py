@@ -34,7 +34,7 @@ VAL_SEED_OFFSET = 99  # the validation stream: seed + this (any fixed value; cho
 
 @TASKS.register("svr_train")
 def svr_train(cfg, ctx) -> dict:
-    require_positive(cfg, "iters", "batch_size", "lr", "eval_points", "vis_size")
+    require_positive(cfg, "iters", "batch_size", "lr", "eval_points", "turntable_size")
     with ctx.stopwatch.stage("data"):
         data = load_data(cfg.data)
     geometry = geometry_of(data)

@@ -43,8 +43,16 @@ def train_nerf(cfg, ctx) -> dict:
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
     sampler = SAMPLERS.build(cfg.sampler, scene_box=box).to(ctx.device)
-    opt, scheds = build_optimizer(cfg.optim, model.parameters(), int(cfg.iters))
-    trainable = Trainable({"field": model}, opt, extra={"sampler": sampler}, schedulers=scheds)
+    # What lies outside the scene box: the dataset's background colour, composited behind every
+    # ray; learnt (one RGB, from the data's estimate) when the data does not know it (real captures).
+    learn_bg = {"auto": not getattr(data, "background_known", True), "true": True, "false": False}[
+        str(cfg.learn_background).lower()]
+    background = torch.nn.ParameterDict({"rgb": torch.nn.Parameter(data.background.clone().float(),
+                                                                   requires_grad=learn_bg)})
+    params = list(model.parameters()) + ([background["rgb"]] if learn_bg else [])
+    opt, scheds = build_optimizer(cfg.optim, params, int(cfg.iters))
+    trainable = Trainable({"field": model, "background": background}, opt, extra={"sampler": sampler},
+                          schedulers=scheds)
 
     origins, dirs = camera_rays(data.cameras, normalize=True)                 # (N, H, W, 3)
     tr = data.train.to(ctx.device)
@@ -53,7 +61,7 @@ def train_nerf(cfg, ctx) -> dict:
     stats = {"samples_per_ray": 0.0, "train_seconds": 0.0, "steps": 0}
 
     def render_fn(o, d, **kw):
-        return render_field_rays(model, o, d, sampler, background=data.background, **kw)
+        return render_field_rays(model, o, d, sampler, background=background["rgb"].clamp(0, 1), **kw)
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
         stats["_t0"] = time.perf_counter()
@@ -98,7 +106,7 @@ def train_nerf(cfg, ctx) -> dict:
         if int(cfg.gif_frames) > 0:
             cams = orbit_cameras(int(cfg.gif_frames), float(data.cameras.centers().norm(dim=-1).mean()),
                                  float(cfg.gif_elevation), float(data.cameras.fov()[0]),
-                                 int(cfg.gif_size) or data.cameras.width, up=data_up(data), device=ctx.device)
+                                 int(cfg.turntable_size) or data.cameras.width, up=data_up(data), device=ctx.device)
             write_turntable(ctx.path("turntable.gif"), color_depth_frames(render_fn, int(cfg.chunk)), cams, cfg.fps)
         if bool(cfg.extract_mesh):
             mesh = extract_mesh(lambda p: -model.density(p), box, int(cfg.mesh_resolution), -float(cfg.mesh_threshold),
@@ -112,4 +120,5 @@ def train_nerf(cfg, ctx) -> dict:
                     **result.timing(), "n_params": sum(p.numel() for p in model.parameters()),
                     **{k: round(float(v), 5) for k, v in figures().items()}, "history": result.history_rows()})
     metrics["budget_stop"] = result.budget_stop
+    metrics["background"] = [round(float(c), 4) for c in background["rgb"].detach().clamp(0, 1)]
     return metrics

@@ -223,7 +223,7 @@ def _turntables(cfg, ctx, model, render, data, box) -> None:
     """render.gif (colour | depth) and geometry.gif (sphere-traced SDF shading) about the data's up axis."""
     cams = orbit_cameras(int(cfg.gif_frames), float(data.cameras.centers().norm(dim=-1).mean()),
                          float(cfg.gif_elevation), float(data.cameras.fov()[0]),
-                         int(cfg.gif_size) or data.cameras.width, up=data_up(data), device=ctx.device)
+                         int(cfg.turntable_size) or data.cameras.width, up=data_up(data), device=ctx.device)
     write_turntable(ctx.path("render.gif"), color_depth_frames(render, int(cfg.chunk)), cams, cfg.fps)
     shade = lambda o, d: {"color": render_sdf_shaded(model.sdf, o, d, box)}  # noqa: E731
     write_turntable(ctx.path("geometry.gif"), lambda c: render_views(shade, c, int(cfg.chunk))["color"], cams, cfg.fps)
