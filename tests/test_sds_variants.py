@@ -8,15 +8,14 @@ import pytest
 import torch
 
 from l3d_app.app import run_task
-from l3d_app.data.prompt_images import parse_prompt, render_prompt_images
 from l3d_app.diffusion.prior import DiffusionPrior, PromptEmbedding
 from l3d_app.diffusion.registry import PRIORS
 from l3d_app.diffusion.schedule import alphas_cumprod
 from l3d_app.errors import UserError
 from l3d_app.losses.sds import sds_loss
 from l3d_app.runtime.lr_schedules import warmup_cosine
+from sds_oracles import LatentOracle
 
-SIZE = 16
 
 
 class TanhLatentPrior(DiffusionPrior):
@@ -69,34 +68,6 @@ def test_pixel_space_sds_needs_a_latent_prior():
         sds_loss(PixelPrior(), x, PixelPrior().embed_prompt("x"), target_space="pixel")
     with pytest.raises(UserError, match="target space"):
         sds_loss(TanhLatentPrior(), x, TanhLatentPrior().embed_prompt("x"), target_space="rgb")
-
-
-class LatentOracle(DiffusionPrior):
-    """Exact eps for ONE latent per condition: the prompt's image, encoded by the identity-like
-    map ``z = 2 img - 1`` (a 'latent' prior with a trivial autoencoder); unconditional: 0."""
-
-    is_latent = True
-
-    def __init__(self, **_config):
-        super().__init__()
-        self.register_buffer("alphas_cumprod", alphas_cumprod(1000, "cosine"))
-        self.latent_shape, self.image_size = (3, SIZE, SIZE), SIZE
-
-    def embed_prompt(self, prompt):
-        labels = torch.tensor([parse_prompt(prompt)])
-        img = render_prompt_images(labels, SIZE, torch.Generator().manual_seed(0), jitter=0.0,
-                                   min_radius=0.3, max_radius=0.3, max_offset=0.0)
-        return PromptEmbedding(cond=(img * 2 - 1).flatten(1), uncond=torch.zeros(1, 3 * SIZE * SIZE))
-
-    def predict_noise(self, x_t, t, condition):
-        a = self.alphas_cumprod[t].view(-1, 1, 1, 1)
-        return (x_t - a.sqrt() * condition.view(-1, *self.latent_shape)) / (1 - a).sqrt()
-
-    def encode(self, images):
-        return images * 2 - 1
-
-    def decode(self, z):
-        return (z + 1) / 2
 
 
 if "sds_test_latent_oracle" not in PRIORS:
