@@ -51,6 +51,28 @@ def test_box_task_recovers_the_box(compose, tmp_path):
     assert metrics["center_error"] < 0.005 and metrics["size_error"] < 0.005
     assert metrics["psnr"] > 40 and metrics["iters"] == 250
     assert (tmp_path / "turntable.gif").exists() and (tmp_path / "fit_views.png").exists()
+    import imageio.v2 as imageio
+
+    ba = imageio.imread(tmp_path / "before_after.png").astype(np.float64) / 255     # before / after / images
+    h = ba.shape[0] // 3
+    before_err, after_err = np.abs(ba[:h] - ba[2 * h:]).mean(), np.abs(ba[h:2 * h] - ba[2 * h:]).mean()
+    assert after_err < 0.25 * before_err, (before_err, after_err)
+
+
+def test_render_mode_draws_the_true_box_without_training(compose, tmp_path):
+    """mode=render with the true box reproduces the course's images (133 dB) and draws the
+    depth picture the course shows; a wrong box does not."""
+    import imageio.v2 as imageio
+
+    course_data("box")
+    common = ("task=box", "mode=render", "gif_frames=2", "turntable_size=16", "tensorboard=false", "threads=1")
+    run_task(compose(*common), out_dir=tmp_path / "true")
+    m = json.loads((tmp_path / "true" / "metrics.json").read_text())
+    assert m["render_psnr"] > 100 and "iters" not in m
+    depth = imageio.imread(tmp_path / "true" / "depth.png")
+    assert depth.shape == (16, 16, 3) and (tmp_path / "true" / "turntable.gif").exists()
+    run_task(compose(*common, "render_size=[1.5,1.5,1.5]"), out_dir=tmp_path / "wrong")
+    assert json.loads((tmp_path / "wrong" / "metrics.json").read_text())["render_psnr"] < 30
 
 
 def test_missing_root_is_a_user_error(compose, tmp_path):

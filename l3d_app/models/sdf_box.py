@@ -35,12 +35,14 @@ class SDFBox(torch.nn.Module):
 
     def render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, estimator: Optional[object] = None
                     ) -> Dict[str, torch.Tensor]:
-        """origins, unit dirs (R, 3) -> {"color": (R, 3)} on black; samples from ``estimator``
-        (default: the course's 64 linspace samples on [0, 5])."""
+        """origins, unit dirs (R, 3) -> {"color": (R, 3) on black, "depth": (R,) expected
+        distance, "opacity": (R,)}; samples from ``estimator`` (default: the course's 64
+        linspace samples on [0, 5])."""
         est = estimator if estimator is not None else StratifiedEstimator(64, near=0.0, far=5.0)
 
         def fn(t0, t1, rays):
             opacity, rgb = self.field(points_of(origins, dirs, t0, rays)[0])
             return {"rgb": rgb, "alpha": opacity}
 
-        return {"color": render_rays(*est.sampling(origins, dirs), origins.shape[0], fn)["color"]}
+        out = render_rays(*est.sampling(origins, dirs), origins.shape[0], fn)
+        return {k: out[k] for k in ("color", "depth", "opacity")}

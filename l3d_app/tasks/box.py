@@ -14,6 +14,12 @@ with camera-frame ``z = 1`` directions (``t`` = depth instead of distance) are o
 
 Training: MSE on ``batch_rays`` random pixels of the four images per step, Adam (``lr``,
 decayed exponentially to ``lr * lr_final_factor``), through the shared :func:`train` loop.
+``before_after.png``: the four views rendered before training, after it, and the images.
+
+``mode=render`` renders the box given by ``render_center`` / ``render_size`` (default: the
+true box) without training: ``turntable.gif``, ``depth.png`` (the first frame's depth,
+normalised by its maximum, viridis, as the course shows it) and the PSNR of its renders from
+the four data cameras against the course's images (``render_psnr``).
 
 Relative ``data.root`` paths are resolved against the repository root (the folder holding
 ``main.py``), not the Hydra run directory nor the shell's working directory, so the default
@@ -30,6 +36,7 @@ from l3d_app.geometry.rays import camera_rays
 from l3d_app.metrics.image import psnr
 from l3d_app.registry import DATASETS, SAMPLERS, TASKS
 from l3d_app.models.sdf_box import SDFBox
+from l3d_app.render.diagnostics import depth_colormap
 from l3d_app.render.evaluation import render_views
 from l3d_app.render.turntable import data_up, orbit_cameras, write_turntable
 from l3d_app.render.volume import render_rays_chunked
@@ -50,6 +57,10 @@ def box(cfg, ctx) -> dict:
     target = data.images
     flat_o, flat_d, flat_rgb = origins.reshape(-1, 3), dirs.reshape(-1, 3), target.reshape(-1, 3)
     n_pix = flat_o.shape[0]
+    if str(cfg.mode) == "render":
+        return _render_only(cfg, ctx, data, origins, dirs)
+    if str(cfg.mode) != "fit":
+        raise ValueError(f"box mode must be fit or render, got '{cfg.mode}'")
 
     model = SDFBox(cfg.init_center, cfg.init_size, alpha=float(cfg.alpha), beta=float(cfg.beta)).to(ctx.device)
     iters = int(cfg.iters)
@@ -75,6 +86,8 @@ def box(cfg, ctx) -> dict:
                 "size_error": float((model.size - gt_s).abs().max()),
                 "psnr": float(psnr(render_views(stride), target[:, ::stride, ::stride]))}
 
+    with torch.no_grad():
+        before = render_views(1)
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, iters, eval_fn=eval_fn, eval_every=int(cfg.eval_every),
                        checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume),
@@ -83,6 +96,7 @@ def box(cfg, ctx) -> dict:
         final = render_views(1)
         final_psnr = float(psnr(final, target))
     save_png(ctx.path("fit_views.png"), torch.cat([torch.cat(list(final), 1), torch.cat(list(target), 1)], 0))
+    save_png(ctx.path("before_after.png"), torch.cat([torch.cat(list(v.clamp(0, 1)), 1) for v in (before, final, target)], 0))
     if int(cfg.gif_frames) > 0:
         _turntable(cfg, ctx, model, data)
     center, size = model.center.detach().cpu(), model.size.detach().cpu()
@@ -109,3 +123,24 @@ def _turntable(cfg, ctx, model: SDFBox, data) -> None:
     render = lambda a, b: {"color": model.render_rays(a, b, sampler)["color"]}  # noqa: E731
     write_turntable(ctx.path("turntable.gif"), lambda c: render_views(render, c, int(cfg.chunk))["color"], cams,
                     cfg.fps)
+
+
+@torch.no_grad()
+def _render_only(cfg, ctx, data, origins: torch.Tensor, dirs: torch.Tensor) -> dict:
+    """``mode=render``: the given box without training (turntable, depth picture, PSNR of its
+    renders from the data cameras against the data images)."""
+    model = SDFBox(cfg.render_center, cfg.render_size, alpha=float(cfg.alpha), beta=float(cfg.beta)).to(ctx.device)
+    sampler = SAMPLERS.build(cfg.sampler)
+    views = render_rays_chunked(lambda a, b: model.render_rays(a, b, sampler), origins, dirs, int(cfg.chunk))
+    save_png(ctx.path("views.png"), torch.cat([torch.cat(list(views["color"].clamp(0, 1)), 1),
+                                               torch.cat(list(data.images), 1)], 0))
+    cams = orbit_cameras(max(1, int(cfg.gif_frames)), float(cfg.gif_distance), float(cfg.gif_elevation), 90.0,
+                         int(cfg.turntable_size), up=data_up(data), device=ctx.device)
+    out = render_views(lambda a, b: model.render_rays(a, b, sampler), cams, int(cfg.chunk))
+    depth = depth_colormap(out["depth"][0], out["opacity"][0] > 0.5)
+    save_png(ctx.path("depth.png"), depth)
+    if int(cfg.gif_frames) > 0:
+        write_turntable(ctx.path("turntable.gif"), lambda c: out["color"], cams, cfg.fps)
+    return {"mode": "render", "render_psnr": round(float(psnr(views["color"], data.images)), 4),
+            "max_depth": round(float(out["depth"][0][out["opacity"][0] > 0.5].max()), 4),
+            "num_frames": int(cams.batch_size) if hasattr(cams, "batch_size") else len(out["color"])}
