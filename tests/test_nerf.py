@@ -284,6 +284,7 @@ def test_train_nerf_short_run_improves_psnr(compose, tmp_path):
     for name in ("turntable.gif", "test_views.png", "checkpoint.pt", "mesh.obj", "mesh.glb"):
         assert (tmp_path / "run" / name).exists(), name
     assert m["mesh_faces"] > 100
+    assert (tmp_path / "run" / "before_after.png").exists() and m["before_val_psnr"] < hist[0] < m["val_psnr"]
 
 
 def test_nerf_baseline_config_is_the_course_setting(compose, tmp_path):

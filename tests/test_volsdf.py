@@ -117,6 +117,7 @@ def test_volsdf_short_run_improves_psnr_and_writes_everything(compose, tmp_path)
     assert m["history"][-1]["psnr"] == pytest.approx(m["val_psnr"], abs=1e-3)
     assert len(hist) == 3 and hist[-1] > hist[0] + 0.25 and hist[-1] > 14.5, hist
     assert np.isfinite(m["chamfer"]) and 0 <= m["f1"] <= 1
+    assert (tmp_path / "run" / "before_after.png").exists() and m["before_val_psnr"] < m["val_psnr"]
     assert 0 < m["fine_samples_per_ray"] <= cfg.n_fine and m["samples_per_ray"] <= cfg.n_coarse + cfg.n_fine
     diag = _true_mesh_diagonal()
     assert m["chamfer_rel_diag"] == pytest.approx(m["chamfer"] / diag, abs=1e-6)  # both rounded to 6 decimals

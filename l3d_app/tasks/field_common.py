@@ -9,6 +9,7 @@ import torch
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.metrics.image import psnr, ssim
 from l3d_app.render.evaluation import RenderFn, evaluation_picture, render_views
+from l3d_app.runtime.media import save_png
 
 
 @torch.no_grad()
@@ -25,3 +26,32 @@ def evaluate_views(render_fn: RenderFn, cameras: Cameras, images: torch.Tensor, 
     metrics = {"psnr": float(psnr(pred, images)), "ssim": float(ssim(pred, images))}
     picture = evaluation_picture(pred, images, out.get("depth"), out.get("opacity"), max_picture_views)
     return metrics, picture, out
+
+
+class BeforeAfter:
+    """The validation picture before training and at the last evaluation, side by side.
+
+    ``before(evaluate_fn)`` renders the val views once before the first step (no sampler
+    update, no random draw: the run's stream is untouched) and logs ``val/before_training``;
+    ``after(picture)`` keeps each evaluation's picture; ``save(ctx)`` writes
+    ``before_after.png`` (before above, last evaluation below) and returns ``{"before_val_psnr"}``.
+    """
+
+    def __init__(self):
+        self.pictures: Dict[str, torch.Tensor] = {}
+        self.before_psnr = float("nan")
+
+    def before(self, ctx, evaluate_fn) -> None:
+        with torch.no_grad():
+            metrics, self.pictures["before"], _ = evaluate_fn()
+        self.before_psnr = float(metrics["psnr"])
+        ctx.logger.image("val/before_training", self.pictures["before"], 0)
+
+    def after(self, picture: torch.Tensor) -> None:
+        self.pictures["last"] = picture
+
+    def save(self, ctx) -> Dict[str, float]:
+        if {"before", "last"} <= set(self.pictures):
+            save_png(ctx.path("before_after.png"), torch.cat([self.pictures["before"], self.pictures["last"]], 0))
+            return {"before_val_psnr": round(self.before_psnr, 4)}
+        return {}

@@ -32,7 +32,7 @@ from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import require_positive
-from l3d_app.tasks.field_common import evaluate_views
+from l3d_app.tasks.field_common import BeforeAfter, evaluate_views
 
 
 @TASKS.register("train_nerf")
@@ -87,9 +87,14 @@ def train_nerf(cfg, ctx) -> dict:
 
     val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val
 
+    before_after = BeforeAfter()
+    if len(val) and bool(cfg.before_after) and not (bool(cfg.resume) and ctx.path("checkpoint.pt").exists()):
+        before_after.before(ctx, lambda: evaluate(val))
+
     def eval_fn(step: int) -> Dict[str, float]:
         sampler.update(step, model, ctx.generator)
         metrics, picture, _ = evaluate(val)
+        before_after.after(picture)
         return {**metrics, **figures(), "images": {"views": picture}}
 
     with ctx.stopwatch.stage("train"):
@@ -103,6 +108,7 @@ def train_nerf(cfg, ctx) -> dict:
         log_test(ctx, test, result.step, images={"views": picture})
         save_png(ctx.path("test_views.png"), picture)
         metrics = {k: round(v, 4) for k, v in test.items()}
+        metrics.update(before_after.save(ctx))
         if int(cfg.gif_frames) > 0:
             cams = orbit_cameras(int(cfg.gif_frames), float(data.cameras.centers().norm(dim=-1).mean()),
                                  float(cfg.gif_elevation), float(data.cameras.fov()[0]),

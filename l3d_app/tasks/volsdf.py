@@ -73,7 +73,7 @@ from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import require_positive
-from l3d_app.tasks.field_common import evaluate_views
+from l3d_app.tasks.field_common import BeforeAfter, evaluate_views
 
 
 @TASKS.register("volsdf")
@@ -144,8 +144,13 @@ def volsdf(cfg, ctx) -> dict:
 
     val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val
 
+    before_after = BeforeAfter()
+    if len(val) and bool(cfg.before_after) and not (bool(cfg.resume) and ctx.path("checkpoint.pt").exists()):
+        before_after.before(ctx, lambda: evaluate(val))
+
     def eval_fn(step: int) -> Dict[str, float]:
         metrics, picture, _ = evaluate(val)
+        before_after.after(picture)
         return {**metrics, **dens.stats(), "samples_per_ray": stats["samples_per_ray"],
                 "train_seconds": stats["train_seconds"], "cpu_seconds": stats["cpu_seconds"],
                 "images": {"views": picture}}
@@ -162,6 +167,7 @@ def volsdf(cfg, ctx) -> dict:
         log_test(ctx, test, result.step, images={"views": picture})
         save_png(ctx.path("test_views.png"), picture)
     metrics = {k: round(v, 4) for k, v in test.items()}
+    metrics.update(before_after.save(ctx))
     with ctx.stopwatch.stage("mesh"):
         metrics.update(_surface_metrics(cfg, ctx, model, field_fn, box, data))
     if int(cfg.gif_frames) > 0:
