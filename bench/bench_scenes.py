@@ -92,6 +92,20 @@ def mesh_scores(mesh_path: Path, scene: Path) -> Dict[str, float]:
             "phantom_pct": 100 * (1.0 - s05["precision"]), "observed_fraction": s05["observed_fraction"]}
 
 
+BEGIN, END = "<!-- bench_scenes:begin -->", "<!-- bench_scenes:end -->"
+
+
+def write_section(doc: Path, section: str) -> None:
+    """Replace the text between the BEGIN/END markers of ``doc`` (or start the file with it)."""
+    text = doc.read_text() if doc.is_file() else "# Benchmark on scenes we did not make (Mitsuba 3)\n\n"
+    if BEGIN in text and END in text:
+        text = text[:text.index(BEGIN)] + section + text[text.index(END) + len(END):]
+    else:
+        text = text + section + "\n"
+    doc.parent.mkdir(parents=True, exist_ok=True)
+    doc.write_text(text)
+
+
 def fmt(v, spec: str) -> str:
     return "" if v is None else format(v, spec)
 
@@ -163,11 +177,10 @@ def main() -> None:
     (args.out / "results.json").write_text(json.dumps(rows, indent=1))
     load = os.getloadavg()
     cmd = "python bench/bench_scenes.py " + " ".join(sys.argv[1:])
-    doc = (f"# Benchmark on scenes we did not make (Mitsuba 3)\n\n`{cmd.strip()}`\n\n"
-           f"Machine: {os.cpu_count()} cores, load average at the end {load[0]:.1f}. Targets on held-out scenes: "
-           + "; ".join(f"{k}: {v}" for k, v in TARGETS.items()) + ".\n\n" + table(rows) + "\n")
-    args.doc.parent.mkdir(parents=True, exist_ok=True)
-    args.doc.write_text(doc)
+    section = (f"{BEGIN}\n`{cmd.strip()}`\n\n"
+               f"Machine: {os.cpu_count()} cores, load average at the end {load[0]:.1f}. Targets on held-out scenes: "
+               + "; ".join(f"{k}: {v}" for k, v in TARGETS.items()) + ".\n\n" + table(rows) + f"\n{END}")
+    write_section(args.doc, section)
     plot(rows, args.doc.with_suffix(".png"))
     print(table(rows))
 
