@@ -90,7 +90,8 @@ def run_task(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]
     generator = seed_everything(int(cfg.get("seed", 0)), device)
     logger = RunLogger(out_dir, enabled=bool(cfg.get("tensorboard", True)))
     ctx = RunContext(out_dir=out_dir, device=device, generator=generator, logger=logger,
-                     params=_sweep_params(cfg))
+                     params=_sweep_params(cfg), time_budget=float(cfg.get("time_budget", 0) or 0),
+                     reserve=float(cfg.get("reserve", 0) or 0))
     try:
         logger.text("config", "```\n" + OmegaConf.to_yaml(cfg, resolve=True) + "\n```")
         metrics = ctx.write_metrics(task(cfg, ctx) or {})

@@ -24,6 +24,8 @@ class RunContext:
     stopwatch: Stopwatch = field(default_factory=Stopwatch)
     params: Dict[str, Any] = field(default_factory=dict)
     interrupted: bool = False  # set by the training loop on SIGINT/SIGTERM
+    time_budget: float = 0.0  # > 0: wall seconds for the whole task (``time_budget=``); every training loop honours it
+    reserve: float = 0.0  # seconds of ``time_budget`` kept for what follows the training loop (``reserve=``)
 
     def path(self, name: str) -> Path:
         """A path inside the run directory (parent folders created)."""

@@ -185,7 +185,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
           eval_every: int = 0, checkpoint_every: int = 0, resume: bool = False,
           max_bad_steps: int = 5, desc: str = "train", log_every: int = 10,
           after_step: Optional[Callable[[int], None]] = None,
-          time_budget: float = 0.0, reserve: float = 0.0) -> TrainResult:
+          time_budget: Optional[float] = None, reserve: Optional[float] = None) -> TrainResult:
     """Run ``iters`` optimisation steps.
 
     Args:
@@ -204,7 +204,10 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
         after_step: called after each applied step (e.g. to update an occupancy grid).
         time_budget: > 0: wall seconds for the whole task (``ctx.stopwatch.elapsed``); the
             loop stops when the next step, the final validation and ``reserve`` would not fit.
-        reserve: seconds the task needs after the loop (test evaluation, artefacts).
+            None: the run's ``ctx.time_budget`` (the top-level ``time_budget=`` knob), so every
+            task that trains through this loop honours it.
+        reserve: seconds the task needs after the loop (test evaluation, artefacts); None:
+            ``ctx.reserve``.
     """
     params = trainable.parameters()
     ckpt_path = ctx.out_dir / CHECKPOINT
@@ -221,6 +224,10 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
     step = start
     stop = _StopFlag()
     stop_at = int(os.environ["L3D_STOP_AT_STEP"]) if os.environ.get("L3D_STOP_AT_STEP") else None
+    if time_budget is None:
+        time_budget = getattr(ctx, "time_budget", 0.0)
+    if reserve is None:
+        reserve = getattr(ctx, "reserve", 0.0)
     clock = _LoopClock(float(time_budget or 0.0), float(reserve or 0.0))
     with stop.installed():
         bar = progress(range(start, iters), desc=desc, total=iters, initial=start)
