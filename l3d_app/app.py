@@ -26,6 +26,7 @@ from l3d_app.registry import TASKS
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.device import resolve_device
 from l3d_app.runtime.logger import RunLogger
+from l3d_app.runtime.precision import check_precision
 from l3d_app.runtime.seed import seed_everything
 
 
@@ -81,6 +82,7 @@ def run_task(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]
                         f"e.g. {missing[0]}=...")
     load_registries()
     task = TASKS.get(str(cfg.task_name))
+    precision = check_precision(str(cfg.get("precision", "fp32")))
     out_dir = Path(out_dir) if out_dir is not None else _hydra_output_dir()
     out_dir.mkdir(parents=True, exist_ok=True)
     threads = int(cfg.get("threads", 0) or 0) or _parallel_thread_budget()
@@ -91,7 +93,8 @@ def run_task(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]
     logger = RunLogger(out_dir, enabled=bool(cfg.get("tensorboard", True)))
     ctx = RunContext(out_dir=out_dir, device=device, generator=generator, logger=logger,
                      params=_sweep_params(cfg), time_budget=float(cfg.get("time_budget", 0) or 0),
-                     reserve=float(cfg.get("reserve", 0) or 0))
+                     reserve=float(cfg.get("reserve", 0) or 0),
+                     precision=precision)
     try:
         logger.text("config", "```\n" + OmegaConf.to_yaml(cfg, resolve=True) + "\n```")
         metrics = ctx.write_metrics(task(cfg, ctx) or {})

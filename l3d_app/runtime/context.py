@@ -25,6 +25,7 @@ class RunContext:
     params: Dict[str, Any] = field(default_factory=dict)
     interrupted: bool = False  # set by the training loop on SIGINT/SIGTERM
     time_budget: float = 0.0  # > 0: wall seconds for the whole task (``time_budget=``); every training loop honours it
+    precision: str = "fp32"  # fp32 | bf16: autocast of every training step's forward (``precision=``)
     reserve: float = 0.0  # seconds of ``time_budget`` kept for what follows the training loop (``reserve=``)
 
     def path(self, name: str) -> Path:

@@ -42,6 +42,7 @@ from typing import Any, Callable, Dict, Iterator, List, Optional
 import torch
 
 from l3d_app.runtime.files import atomic_path
+from l3d_app.runtime.precision import autocast
 from l3d_app.runtime.progress import progress
 
 CHECKPOINT = "checkpoint.pt"
@@ -208,6 +209,10 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
             task that trains through this loop honours it.
         reserve: seconds the task needs after the loop (test evaluation, artefacts); None:
             ``ctx.reserve``.
+
+    ``step_fn`` runs under ``autocast(ctx.precision, ctx.device)`` (the ``precision=`` knob:
+    ``fp32`` does nothing, ``bf16`` autocasts the forward); backward and the optimiser step
+    run outside it, on float32 parameters. Evaluations are not autocast.
     """
     params = trainable.parameters()
     ckpt_path = ctx.out_dir / CHECKPOINT
@@ -229,12 +234,14 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
     if reserve is None:
         reserve = getattr(ctx, "reserve", 0.0)
     clock = _LoopClock(float(time_budget or 0.0), float(reserve or 0.0))
+    precision = getattr(ctx, "precision", "fp32")
     with stop.installed():
         bar = progress(range(start, iters), desc=desc, total=iters, initial=start)
         for step in bar:
             t0 = time.perf_counter()
             trainable.optimizer.zero_grad(set_to_none=True)
-            logs = step_fn(step)
+            with autocast(precision, ctx.device):
+                logs = step_fn(step)
             loss = logs["loss"]
             ok = bool(torch.isfinite(loss).all())
             if ok:
