@@ -37,7 +37,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 DEFAULT_SCENES = Path(os.environ.get("L3D_BENCH_SCENES", REPO / "outputs" / ".cache" / "bench_scenes"))
 METHODS = ("train_nerf", "gs_train", "volsdf", "nerf_baseline")
-EXTRA = {"train_nerf": ["extract_mesh=true"]}
+EXTRA = {"train_nerf": ["extract_mesh=true"],
+         "nerf_baseline": ["gif_frames=0"]}  # the in-run baseline: test PSNR at a fixed budget, no turntable
 TARGETS = {"train_nerf": "psnr >= 32", "gs_train": "psnr >= 33",
            "volsdf": "chamfer <= 1% diag, F1@0.02 obs >= 0.8, psnr >= 28, phantom < 5%"}
 

@@ -61,3 +61,29 @@ def test_the_knob_reaches_a_task_that_never_names_it(compose, tmp_path):
     run_task(compose("task=fit_vox", "iters=40", "eval_every=20", "num_frames=2", "image_size=16",
                      "time_budget=1e-6"), out_dir=tmp_path)
     assert json.loads((tmp_path / "metrics.json").read_text())["iters"] == 1
+
+
+def test_the_reserve_in_evaluations_follows_the_measured_evaluation_cost(tmp_path):
+    # steps cost 10 s and every 2nd step a validation costs 30 s on the fake clock, so after
+    # step k it reads 10 k + 30 floor(k / 2); 3 evaluations' worth of rendering follow the loop.
+    # Stop at the first k with 10 k + 30 floor(k / 2) + 30 (1 + 3) >= 300: k = 7 reads 160
+    # (+120 = 280), k = 8 reads 200 (+120 = 320) -> 8 steps
+    ctx, trainable, step = setup(tmp_path, budget=300.0)
+    evals = {"n": 0}
+
+    def step_fn(i):
+        out = step(i)
+        ctx.stopwatch.elapsed += 30.0 * evals["n"]
+        return out
+
+    def eval_fn(s):
+        ctx.stopwatch.elapsed += 30.0
+        evals["n"] += 1
+        return {"x": 0.0}
+    result = train(ctx, trainable, step_fn, iters=100, eval_fn=eval_fn, eval_every=2, reserve_evals=3.0)
+    assert result.step == 8 and result.budget_stop
+    # without the evaluations' reserve the same loop runs on: 10 k + 30 floor(k / 2) + 30 >= 300 at k = 11
+    ctx, trainable, step = setup(tmp_path / "b", budget=300.0)
+    evals["n"] = 0
+    result = train(ctx, trainable, step_fn, iters=100, eval_fn=eval_fn, eval_every=2)
+    assert result.step > 8 and result.budget_stop

@@ -55,3 +55,14 @@ class BeforeAfter:
             save_png(ctx.path("before_after.png"), torch.cat([self.pictures["before"], self.pictures["last"]], 0))
             return {"before_val_psnr": round(self.before_psnr, 4)}
         return {}
+
+
+def evals_after_training(n_eval_views: int, n_test_views: int, frames: int = 0, frame_size: int = 0,
+                         image_hw: Tuple[int, int] = (1, 1), supersample: int = 1) -> float:
+    """The rendering a field task does after its training loop (the test views, then
+    ``frames`` turntable frames of ``frame_size``^2 pixels), in units of one validation
+    evaluation (``n_eval_views`` views of ``image_hw`` at ``supersample``^2 rays per pixel);
+    the loop turns it into seconds with its own timing (``train(reserve_evals=...)``)."""
+    pixels = image_hw[0] * image_hw[1] * supersample ** 2
+    after = n_test_views * pixels + frames * frame_size ** 2
+    return after / max(1, n_eval_views * pixels)

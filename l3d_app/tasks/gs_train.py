@@ -32,7 +32,7 @@ from l3d_app.render.gaussians_panels import colorize_depth, depth_range, error_m
 from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import require_positive
+from l3d_app.tasks.common import background_parameter, require_positive
 
 
 def _initial_model(cfg, raw, data, generator):
@@ -75,12 +75,16 @@ def gs_train(cfg, ctx) -> dict:
     groups = [("means", model.means, float(lr.means) * extent), ("scales", model.log_scales, float(lr.scales)),
               ("quats", model.quats, float(lr.quats)), ("opacity", model.opacity_logits, float(lr.opacity)),
               ("sh_dc", model.sh_dc, float(lr.sh_dc)), ("sh_rest", model.sh_rest, float(lr.sh_rest))]
+    background = background_parameter(cfg.learn_background, data)  # learnt for real captures
+    if background["rgb"].requires_grad:
+        groups.append(("background", background["rgb"], float(lr.background)))
     opt = torch.optim.Adam([{"params": [p], "lr": r, "name": n} for n, p, r in groups], eps=float(cfg.adam_eps))
     decay, steps = float(lr.means_final) / float(lr.means), int(cfg.lr_decay_steps)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, [lambda s: decay ** min(1.0, s / steps)] + [lambda s: 1.0] * 5)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, [lambda s: decay ** min(1.0, s / steps)] + [lambda s: 1.0] * (len(groups) - 1))
     strategy = STRATEGIES.build(cfg.strategy)
     strategy.initialize(model, opt, extent)
-    trainable = Trainable({"gaussians": model}, opt, extra={"strategy": strategy}, schedulers=[sched])
+    trainable = Trainable({"gaussians": model, "background": background}, opt, extra={"strategy": strategy}, schedulers=[sched])
     H, W = data.image_size
     tr, lam, info, step_times = data.train, float(cfg.ssim_lambda), {"width": W, "height": H}, []
 
@@ -89,7 +93,7 @@ def gs_train(cfg, ctx) -> dict:
 
     def render(i: int, deg: int):
         return rasterize_gaussians(model.means, model.log_scales3, model.quats, model.opacity_logits, model.sh,
-                                   deg, data.cameras[i], data.background, tile_size=int(cfg.tile_size))
+                                   deg, data.cameras[i], background["rgb"].clamp(0, 1), tile_size=int(cfg.tile_size))
 
     def step_fn(step: int):
         info["t0"], info["c0"] = time.perf_counter(), time.process_time()
@@ -130,7 +134,7 @@ def gs_train(cfg, ctx) -> dict:
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
                        checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="gs_train",
                        after_step=after_step, log_every=int(cfg.log_every), time_budget=float(cfg.time_budget),
-                       reserve=float(cfg.reserve))
+                       reserve=float(cfg.reserve), reserve_evals=len(data.test) / len(data.val))
     with torch.no_grad():
         pred, target, panel, test = evaluate(data.test, degree(result.step))
     test = {k: round(v, 4) for k, v in test.items()}
@@ -140,6 +144,7 @@ def gs_train(cfg, ctx) -> dict:
         save_gif(ctx.path("progress.gif"), torch.stack(prog_frames), fps=float(cfg.fps))
     save_gaussian_ply(ctx.path("point_cloud.ply"), **model.tensors())
     return {**test, **result.val_metrics(), **result.timing(), "n_gaussians": model.num,
+            "background": [round(float(c), 4) for c in background["rgb"].detach().clamp(0, 1)],
             **_step_cost(step_times), "history": result.history_rows()}
 
 

@@ -57,6 +57,12 @@ def _field_renderer(fn, chunk: int) -> Render:
     return render
 
 
+def _background(state, data, device) -> torch.Tensor:
+    """(3,) the run's learnt background (``learn_background``) when it saved one, else the data's."""
+    saved = state["modules"].get("background", {}).get("rgb")
+    return (saved if saved is not None else data.background).to(device).float().clamp(0, 1)
+
+
 def _nerf(conf, state, data, device, chunk) -> Render:
     from l3d_app.render.radiance import render_field_rays
 
@@ -64,7 +70,7 @@ def _nerf(conf, state, data, device, chunk) -> Render:
     model = MODELS.build(conf.model, scene_box=box).to(device).eval()
     model.load_state_dict(state["modules"]["field"])
     kw = dict(scene_box=box, n_samples=int(conf.n_samples), n_fine=int(conf.get("n_fine", 0)),
-              background=data.background.to(device))
+              background=_background(state, data, device))
     return _field_renderer(lambda o, d: render_field_rays(model, o, d, **kw), chunk)
 
 
@@ -80,7 +86,7 @@ def _volsdf(conf, state, data, device, chunk) -> Render:
                           learnable=str(conf.beta_mode) == "learnable", beta_min=float(conf.beta_min)).to(device)
     dens.load_state_dict(state["modules"]["density"])
     kw = dict(scene_box=box, density=str(conf.density), alpha=dens.alpha, beta=dens.beta, s=float(conf.s),
-              n_coarse=int(conf.n_coarse), n_fine=int(conf.n_fine), background=data.background.to(device))
+              n_coarse=int(conf.n_coarse), n_fine=int(conf.n_fine), background=_background(state, data, device))
     return _field_renderer(lambda o, d: render_sdf_rays(model.sdf, model, o, d, **kw), chunk)
 
 
@@ -99,7 +105,7 @@ def _gaussians(conf, state, data, device, chunk) -> Render:
 
     sd = state["modules"]["gaussians"]
     model = GaussianModel(*(sd[k] for k in ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")))
-    return _gaussian_renderer(model.to(device), int(conf.sh_degree), data.background.to(device),
+    return _gaussian_renderer(model.to(device), int(conf.sh_degree), _background(state, data, device),
                               int(conf.get("tile_size", 4)))
 
 

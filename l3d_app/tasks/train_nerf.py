@@ -31,8 +31,8 @@ from l3d_app.runtime.media import save_png
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import require_positive
-from l3d_app.tasks.field_common import BeforeAfter, evaluate_views
+from l3d_app.tasks.common import background_parameter, require_positive
+from l3d_app.tasks.field_common import BeforeAfter, evaluate_views, evals_after_training
 
 
 @TASKS.register("train_nerf")
@@ -43,13 +43,9 @@ def train_nerf(cfg, ctx) -> dict:
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
     sampler = SAMPLERS.build(cfg.sampler, scene_box=box).to(ctx.device)
-    # What lies outside the scene box: the dataset's background colour, composited behind every
-    # ray; learnt (one RGB, from the data's estimate) when the data does not know it (real captures).
-    learn_bg = {"auto": not getattr(data, "background_known", True), "true": True, "false": False}[
-        str(cfg.learn_background).lower()]
-    background = torch.nn.ParameterDict({"rgb": torch.nn.Parameter(data.background.clone().float(),
-                                                                   requires_grad=learn_bg)})
-    params = list(model.parameters()) + ([background["rgb"]] if learn_bg else [])
+    # What lies outside the scene box: learnt when the data does not know it (real captures).
+    background = background_parameter(cfg.learn_background, data)
+    params = list(model.parameters()) + ([background["rgb"]] if background["rgb"].requires_grad else [])
     opt, scheds = build_optimizer(cfg.optim, params, int(cfg.iters))
     trainable = Trainable({"field": model, "background": background}, opt, extra={"sampler": sampler},
                           schedulers=scheds)
@@ -101,7 +97,10 @@ def train_nerf(cfg, ctx) -> dict:
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn if len(val) else None,
                        eval_every=int(cfg.eval_every), checkpoint_every=int(cfg.checkpoint_every),
                        resume=bool(cfg.resume), desc="train_nerf", after_step=after_step,
-                       time_budget=float(cfg.time_budget), reserve=float(cfg.reserve))
+                       time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
+                       reserve_evals=evals_after_training(
+                           len(val), len(data.test), int(cfg.gif_frames),
+                           int(cfg.turntable_size) or data.cameras.width, data.image_size))
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator)
         test, picture, _ = evaluate(data.test)                                  # the one test evaluation

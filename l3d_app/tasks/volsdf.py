@@ -72,8 +72,8 @@ from l3d_app.runtime.media import save_png
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import require_positive
-from l3d_app.tasks.field_common import BeforeAfter, evaluate_views
+from l3d_app.tasks.common import background_parameter, require_positive
+from l3d_app.tasks.field_common import BeforeAfter, evaluate_views, evals_after_training
 
 
 @TASKS.register("volsdf")
@@ -90,9 +90,12 @@ def volsdf(cfg, ctx) -> dict:
         ctx.logger.text("pretrain", f"sphere pretraining: mean |f - sdf_sphere| = {err:.4g}")
     levels = LevelSchedule(model, int(cfg.levels_start), int(cfg.level_every))
     sampler = SAMPLERS.build(cfg.sampler, scene_box=box).to(ctx.device)
-    groups = [{"params": list(model.parameters())}, {"params": list(dens.parameters()), "lr": float(cfg.lr_beta)}]
+    background = background_parameter(cfg.learn_background, data)  # learnt for real captures
+    groups = [{"params": list(model.parameters()) + ([background["rgb"]] if background["rgb"].requires_grad else [])},
+              {"params": list(dens.parameters()), "lr": float(cfg.lr_beta)}]
     opt, scheds = build_optimizer(cfg.optim, groups, int(cfg.iters))
-    trainable = Trainable({"field": model, "density": dens}, opt, extra={"sampler": sampler}, schedulers=scheds)
+    trainable = Trainable({"field": model, "density": dens, "background": background}, opt,
+                          extra={"sampler": sampler}, schedulers=scheds)
 
     origins, dirs = camera_rays(data.cameras, normalize=False)                # (N, H, W, 3), camera Z = 1
     tr = data.train.to(ctx.device)
@@ -106,7 +109,8 @@ def volsdf(cfg, ctx) -> dict:
              "steps": 0}
 
     def render(o, d, **kw):
-        return render_sdf_rays(field_fn, o, d, sampler, dens, field=model, background=data.background, **kw)
+        return render_sdf_rays(field_fn, o, d, sampler, dens, field=model,
+                              background=background["rgb"].clamp(0, 1), **kw)
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
         stats["_t0"], stats["_c0"] = time.perf_counter(), time.process_time()
@@ -159,7 +163,10 @@ def volsdf(cfg, ctx) -> dict:
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn if len(val) else None,
                        eval_every=int(cfg.eval_every), checkpoint_every=int(cfg.checkpoint_every),
                        resume=bool(cfg.resume), desc="volsdf", after_step=after_step,
-                       time_budget=float(cfg.time_budget), reserve=float(cfg.reserve))
+                       time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
+                       reserve_evals=evals_after_training(   # test views, then render.gif + geometry.gif
+                           len(val), len(data.test), 2 * int(cfg.gif_frames),
+                           int(cfg.turntable_size) or data.cameras.width, data.image_size, int(cfg.supersample)))
     model.eval()
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator, force=True)
@@ -187,6 +194,7 @@ def volsdf(cfg, ctx) -> dict:
         # CPU time of the training steps (all threads): the per-step cost on a shared machine
         "cpu_seconds_per_step": round(stats["cpu_seconds"] / steps, 4),
         "budget_stop": result.budget_stop, "history": result.history_rows(),
+        "background": [round(float(c), 4) for c in background["rgb"].detach().clamp(0, 1)],
     })
     return metrics
 
