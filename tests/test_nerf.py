@@ -229,8 +229,15 @@ def test_blender_loader_round_trips_cameras_and_composites_alpha(tmp_path):
         expect = 1.0 if bg == "white" else 0.0
         assert torch.allclose(data.images[:, 0, 0], torch.full((3, 3), expect))
         torch.testing.assert_close(data.images[:, 0, 1], torch.from_numpy(rgba[:, 0, 1, :3] / 255.0).float())
+        # the alpha channel is kept as the views' coverage masks
+        torch.testing.assert_close(data.masks, torch.from_numpy(rgba[..., 3] / 255.0).float())
     half = blender(str(tmp_path), downscale=2)
     assert half.images.shape == (3, 4, 4, 3) and float(half.cameras.fx[0]) == pytest.approx(float(cams.fx[0]) / 2, rel=1e-5)
+    # downscaled coverage is the mean alpha of each 2x2 block
+    torch.testing.assert_close(half.masks, torch.from_numpy(rgba[..., 3] / 255.0).float().reshape(3, 4, 2, 4, 2).mean((2, 4)))
+    # RGB images have no masks
+    _write_blender(tmp_path / "rgb", cams, rgba[..., :3].copy())
+    assert blender(str(tmp_path / "rgb")).masks is None
 
 
 def test_blender_loader_reports_missing_keys_and_files(tmp_path):

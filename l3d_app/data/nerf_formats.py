@@ -57,6 +57,11 @@ def _read_image(path: Path) -> np.ndarray:
 
 def _to_float_rgb(img: np.ndarray, bg: torch.Tensor, downscale: int) -> torch.Tensor:
     """uint8/uint16 (H, W[, 3|4]) -> (H/s, W/s, 3) float in [0, 1] composited on ``bg``."""
+    return _to_float_rgb_alpha(img, bg, downscale)[0]
+
+
+def _to_float_rgb_alpha(img: np.ndarray, bg: torch.Tensor, downscale: int):
+    """As :func:`_to_float_rgb`, plus the (H/s, W/s) alpha in [0, 1] of an RGBA image (None for RGB)."""
     scale = 65535.0 if img.dtype == np.uint16 else 255.0
     x = torch.from_numpy(img.astype(np.float32) / scale)
     if x.dim() == 2:
@@ -68,9 +73,11 @@ def _to_float_rgb(img: np.ndarray, bg: torch.Tensor, downscale: int) -> torch.Te
     if downscale > 1:
         h, w = x.shape[0] // downscale * downscale, x.shape[1] // downscale * downscale
         x = torch.nn.functional.avg_pool2d(x[:h, :w].permute(2, 0, 1)[None], downscale)[0].permute(1, 2, 0)
+    alpha = None
     if x.shape[-1] == 4:
+        alpha = x[..., 3].clamp(0, 1).contiguous()
         x = x[..., :3] + (1.0 - x[..., 3:]) * bg
-    return x.clamp(0, 1).contiguous()
+    return x.clamp(0, 1).contiguous(), alpha
 
 
 @DATASETS.register("blender")
@@ -90,7 +97,7 @@ def blender(root: str = None, background="white", downscale: int = 1,
     if int(downscale) < 1:
         raise UserError(f"downscale must be an integer >= 1, got {downscale}")
     bg = background_rgb(background)
-    images, cams, splits, start = [], [], {}, 0
+    images, alphas, cams, splits, start = [], [], [], {}, 0
     for split in SPLITS:
         path = folder / f"transforms_{split}.json"
         if not path.is_file():
@@ -116,7 +123,9 @@ def blender(root: str = None, background="white", downscale: int = 1,
             file = folder / Path(fr["file_path"])
             if file.suffix == "":
                 file = file.with_suffix(".png")
-            imgs.append(_to_float_rgb(_read_image(file), bg, int(downscale)))
+            rgb, alpha = _to_float_rgb_alpha(_read_image(file), bg, int(downscale))
+            imgs.append(rgb)
+            alphas.append(alpha)
             m = torch.tensor(fr["transform_matrix"], dtype=torch.float64)
             if m.shape not in ((4, 4), (3, 4)):
                 raise UserError(f"{path}: frame {i} transform_matrix must be 4x4, got {tuple(m.shape)}")
@@ -146,8 +155,10 @@ def blender(root: str = None, background="white", downscale: int = 1,
         if not mesh_file.is_file():
             raise UserError(f"data.mesh_path: no such file {mesh_file}")
         mesh = load_mesh(mesh_file)
+    masks = torch.stack(alphas) if all(a is not None for a in alphas) else None   # RGBA everywhere: coverage
     data = MultiViewData(torch.stack(images), stack_cameras(cams), splits["train"], splits["val"], splits["test"],
-                         bg, box, name=f"blender:{folder.name}", up=torch.tensor([0.0, 0.0, 1.0]), mesh=mesh)
+                         bg, box, name=f"blender:{folder.name}", up=torch.tensor([0.0, 0.0, 1.0]), mesh=mesh,
+                         masks=masks)
     return data if device is None else data.to(device)
 
 

@@ -61,6 +61,8 @@ class MultiViewData:
         background_known: True when the images were composited on ``background`` (synthetic
             data); False for photographs with a real backdrop, where ``background`` is only
             an initial estimate and a field should learn what lies outside the scene box.
+        masks: (N, H, W) float32 coverage in [0, 1] of the scene in each image (the alpha of
+            RGBA images), or None when the source has none.
     """
 
     images: torch.Tensor
@@ -77,6 +79,7 @@ class MultiViewData:
     up: Optional[torch.Tensor] = None
     source_from_world: Optional[torch.Tensor] = None
     background_known: bool = True
+    masks: Optional[torch.Tensor] = None
 
     def __post_init__(self):
         if self.up is None:
@@ -95,7 +98,7 @@ class MultiViewData:
         return replace(self, images=self.images.to(device), cameras=self.cameras.to(device),
                        background=self.background.to(device), scene_box=self.scene_box.to(device),
                        points=move(self.points), point_colors=move(self.point_colors), mesh=mesh,
-                       up=self.up.to(device))
+                       up=self.up.to(device), masks=move(self.masks))
 
     @property
     def image_size(self) -> Tuple[int, int]:

@@ -105,7 +105,8 @@ def render_rays(t_starts: torch.Tensor, t_ends: torch.Tensor, ray_indices: torch
         out = composite(rgb_d, t_d, sigmas=tau_d, deltas=torch.ones_like(tau_d), background=background)
     per_sample = {k: (out[k].reshape(-1) if full else out[k][ray_indices, pos])
                   for k in ("weights", "transmittance", "alphas")}
-    return {"color": out["color"], "depth": out["depth"], "opacity": out["opacity"], **per_sample,
+    return {"color": out["color"], "depth": out["depth"], "opacity": out["opacity"],
+            "optical_depth": out["optical_depth"], **per_sample,
             "aux": aux, "samples_per_ray": torch.tensor(ray_indices.numel() / max(n_rays, 1))}
 
 

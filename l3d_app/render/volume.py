@@ -96,8 +96,9 @@ def composite(colors: torch.Tensor, t: torch.Tensor, sigmas: Optional[torch.Tens
             tensor: ``color += (1 - opacity) * background``.
     Returns:
         dict with ``color`` (R, C), ``depth`` (R,) = sum w t, ``opacity`` (R,) in [0, 1],
-        ``weights`` (R, S), ``transmittance`` (R, S) = T_i (light reaching sample i) and
-        ``alphas`` (R, S).
+        ``weights`` (R, S), ``transmittance`` (R, S) = T_i (light reaching sample i),
+        ``alphas`` (R, S) and ``optical_depth`` (R,) = sum tau (opacity = 1 - exp(-it); it keeps
+        a gradient where the opacity has saturated to 1 in floating point).
     """
     if (sigmas is None) == (alphas is None):
         raise ValueError("composite needs exactly one of sigmas or alphas")
@@ -107,13 +108,15 @@ def composite(colors: torch.Tensor, t: torch.Tensor, sigmas: Optional[torch.Tens
         tau = sigmas * deltas
         alpha = opacity_from_optical_depth(tau)
         log_t = -_exclusive_cumsum(tau)
-        opacity = opacity_from_optical_depth(tau.sum(dim=-1))
+        optical_depth = tau.sum(dim=-1)
+        opacity = opacity_from_optical_depth(optical_depth)
     else:
         alpha = alphas
         eps = torch.finfo(alphas.dtype).eps
         log_pass = torch.log1p(-alphas.clamp(0.0, 1.0 - eps))
         log_t = _exclusive_cumsum(log_pass)
-        opacity = -torch.expm1(log_pass.sum(dim=-1))
+        optical_depth = -log_pass.sum(dim=-1)
+        opacity = -torch.expm1(-optical_depth)
     trans = torch.exp(log_t)
     weights = trans * alpha
     color = (weights[..., None] * colors).sum(dim=-2)
@@ -122,7 +125,7 @@ def composite(colors: torch.Tensor, t: torch.Tensor, sigmas: Optional[torch.Tens
         color = color + (1.0 - opacity)[..., None] * bg
     depth = (weights * t).sum(dim=-1)
     return {"color": color, "depth": depth, "opacity": opacity, "weights": weights,
-            "transmittance": trans, "alphas": alpha}
+            "transmittance": trans, "alphas": alpha, "optical_depth": optical_depth}
 
 
 def render_rays_chunked(fn: Callable[[torch.Tensor, torch.Tensor], Dict[str, torch.Tensor]],

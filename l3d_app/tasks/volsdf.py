@@ -57,6 +57,7 @@ import torch
 
 from l3d_app.geometry.rays import camera_rays, pixel_axes
 from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
+from l3d_app.losses.occupancy import coverage_bce
 from l3d_app.metrics.surface_scores import surface_scores
 from l3d_app.models.level_schedule import LevelSchedule
 from l3d_app.models.sdf_gradients import field_with_gradient
@@ -100,6 +101,8 @@ def volsdf(cfg, ctx) -> dict:
     origins, dirs = camera_rays(data.cameras, normalize=False)                # (N, H, W, 3), camera Z = 1
     tr = data.train.to(ctx.device)
     flat_o, flat_d, flat_rgb = origins[tr].reshape(-1, 3), dirs[tr].reshape(-1, 3), data.images[tr].reshape(-1, 3)
+    # the images' coverage (RGBA alpha) when the data has it: w_mask x BCE of each ray's opacity
+    flat_mask = data.masks[tr].reshape(-1) if data.masks is not None and float(cfg.w_mask) > 0 else None
     du, dv = pixel_axes(data.cameras[tr])                                     # (n_train, 3) per pixel step
     flat_cam = torch.arange(len(tr), device=ctx.device).repeat_interleave(data.cameras.height * data.cameras.width)
     n_rays, batch = flat_o.shape[0], int(cfg.batch_rays)
@@ -128,6 +131,9 @@ def volsdf(cfg, ctx) -> dict:
                 **{k: torch.tensor(v) for k, v in dens.stats().items()},
                 "active_levels": torch.tensor(float(levels.active))}
         loss = color_loss
+        if flat_mask is not None:
+            mask_loss = coverage_bce(out["optical_depth"], flat_mask[idx])
+            loss, logs["mask_loss"] = loss + float(cfg.w_mask) * mask_loss, mask_loss.detach()
         if float(cfg.w_eikonal) > 0:
             u = rand((int(cfg.eikonal_points), 3), ctx.generator, ctx.device)
             grads = [gradient_at(model, lo + u * (hi - lo))] + ([out["grad"].reshape(-1, 3)] if "grad" in out else [])
