@@ -9,6 +9,7 @@ split (test = every 8th by name, val = every 8th of the rest).
 import json, sys
 from pathlib import Path
 import torch, imageio.v2 as imageio, numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 from l3d_app.data.nerf_views import nerf_builtin, nerf_scene
 from l3d_app.data.colmap_export import write_colmap
 from l3d_app.data.captures import split_by_name
