@@ -344,3 +344,23 @@ def test_render_rays_alpha_and_tau_modes_match_the_naive_loop():
     torch.testing.assert_close(tau_out["color"], sig_out["color"], atol=0, rtol=0)
     with pytest.raises(ValueError):
         render_rays(t0, t1, rays, 8, lambda a, b, r: {"rgb": rgb, "tau": s, "alpha": s})
+
+
+def test_render_rays_with_no_sample_in_the_whole_chunk_gives_the_background():
+    """An evaluation chunk of rays that all miss the box (or all fall in empty grid cells) has N = 0
+    samples; it must composite to the background with opacity 0 (it crashed on the `around` scene at
+    256 px, where a whole chunk of corner pixels missed the box)."""
+    from l3d_app.render.estimators import OccupancyEstimator
+    from l3d_app.render.rendering import radiance_fn, render_rays
+
+    est = OccupancyEstimator(((-1.0,) * 3, (1.0,) * 3), n_samples=16, resolution=8)
+    o = torch.tensor([[5.0, 5.0, 5.0], [5.0, -5.0, 5.0]], dtype=D)
+    d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=D)        # pointing away from the box
+    t0, t1, rays = est.sampling(o, d)
+    assert t0.numel() == 0
+    field = _Blob()
+    bg = torch.tensor([0.2, 0.5, 1.0], dtype=D)
+    out = render_rays(t0, t1, rays, 2, radiance_fn(field, o, d), background=bg)
+    torch.testing.assert_close(out["color"], bg.expand(2, 3))
+    assert out["opacity"].tolist() == [0.0, 0.0] and out["depth"].tolist() == [0.0, 0.0]
+    assert out["weights"].numel() == 0

@@ -24,6 +24,7 @@ of any ray, the rest padded with zero optical depth) and uses
 
 from __future__ import annotations
 
+import math
 from typing import Callable, Dict, Optional, Tuple, Union
 
 import torch
@@ -95,7 +96,8 @@ def render_rays(t_starts: torch.Tensor, t_ends: torch.Tensor, ray_indices: torch
     if full:
         pos = None
     t_d = _scatter(t_starts, ray_indices, pos, n_rays, s_max)
-    rgb_d = _scatter(rgb.reshape(rgb.shape[0], -1), ray_indices, pos, n_rays, s_max)
+    channels = math.prod(rgb.shape[1:])              # (N,) or (N, C); explicit so that N = 0 works
+    rgb_d = _scatter(rgb.reshape(rgb.shape[0], channels), ray_indices, pos, n_rays, s_max)
     if kind == "alpha":
         out = composite(rgb_d, t_d, alphas=_scatter(value.reshape(-1), ray_indices, pos, n_rays, s_max),
                         background=background)
