@@ -1,5 +1,5 @@
 """Camera paths about an arbitrary up axis (orbit, spiral, slerp + Catmull-Rom interpolation,
-nerfstudio camera_path.json) and task=render_path on a trained gs_train run and a PLY."""
+nerfstudio camera_path.json) and task=render_path on trained gs_train, train_nerf and volsdf runs and a PLY."""
 
 import json
 import math
@@ -150,3 +150,35 @@ def test_render_path_on_a_gs_train_run_matches_the_model(compose, tmp_path):
         run_task(compose("task=render_path", f"checkpoint={run}", "path=camera_path", f"camera_path={tmp_path / 'e.json'}",
                          "tensorboard=false"), out_dir=tmp_path / "bad")
     assert not (tmp_path / "bad" / "path.mp4").exists()
+
+
+@pytest.mark.parametrize("task, extra", [
+    ("train_nerf", ["iters=40", "eval_every=40", "gif_frames=2"]),
+    ("volsdf", ["iters=30", "eval_every=30", "supersample=1", "pretrain_steps=50", "gif_frames=0"]),
+])
+def test_render_path_of_a_field_run_reproduces_its_test_psnr(compose, tmp_path, task, extra):
+    """render_path of a train_nerf / volsdf run, along a camera_path.json holding the run's test camera,
+    must give the test PSNR the task itself reported (the task's evaluation is the reference)."""
+    from omegaconf import OmegaConf
+
+    from l3d_app.data.nerf_views import nerf_builtin
+
+    data_args = ["data.image_size=24", "data.n_train=12", "data.n_val=1", "data.n_test=1", "data.antialias=1",
+                 f"data.cache_dir={tmp_path / 'cache'}"]
+    run = tmp_path / task
+    cfg = compose(f"task={task}", *data_args, *extra, "tensorboard=false", "threads=1")
+    run_task(cfg, out_dir=run)
+    (run / ".hydra").mkdir()
+    (run / ".hydra" / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    psnr_task = json.loads((run / "metrics.json").read_text())["psnr"]
+    data = nerf_builtin(image_size=24, n_train=12, n_val=1, n_test=1, antialias=1, cache_dir=str(tmp_path / "cache"))
+    test = int(data.test[0])
+    write_camera_path(tmp_path / "test_cam.json", data.cameras[[test, test]])
+    rp = compose("task=render_path", f"checkpoint={run}", "path=camera_path", f"camera_path={tmp_path / 'test_cam.json'}",
+                 "formats=[gif]", "panels=[color]", "tensorboard=false", "threads=1")
+    run_task(rp, out_dir=tmp_path / "rp")
+    frame = imageio.mimread(tmp_path / "rp" / "path.gif")[0][..., :3] / 255.0
+    mse = float(((torch.from_numpy(frame) - data.images[test].double()) ** 2).mean())
+    psnr_path = -10 * math.log10(mse)
+    assert psnr_task > 12.0                                   # the run learnt something to reproduce
+    assert abs(psnr_path - psnr_task) < 0.5, (psnr_path, psnr_task)   # GIF palette quantisation only

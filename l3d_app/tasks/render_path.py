@@ -32,7 +32,7 @@ from l3d_app.geometry.camera_paths import (interpolate_cameras, orbit, read_came
                                            write_camera_path)
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays
-from l3d_app.registry import DATASETS, MODELS, TASKS
+from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.media import save_gif, to_uint8
 from l3d_app.runtime.paths import resolve_path
@@ -44,14 +44,16 @@ PANELS = ("color", "depth", "alpha")
 
 
 # ------------------------------------------------------------ per-kind adapters
-def _field_renderer(fn, chunk: int) -> Render:
+def _field_renderer(fn, chunk: int, normalize: bool = True) -> Render:
+    """Render cameras with ``fn(origins, dirs)``; ``normalize``: unit directions (train_nerf) or
+    camera-Z = 1 directions (volsdf), as the task trained with."""
     from l3d_app.render.volume import render_rays_chunked
 
     def keep(o, d):
         return {k: v for k, v in fn(o, d).items() if k in ("color", "depth", "opacity")}
 
     def render(cams: Cameras) -> Dict[str, torch.Tensor]:
-        o, d = camera_rays(cams, normalize=True)
+        o, d = camera_rays(cams, normalize=normalize)
         out = render_rays_chunked(keep, o, d, chunk)
         return {"color": out["color"], "depth": out["depth"], "alpha": out["opacity"]}
     return render
@@ -63,31 +65,38 @@ def _background(state, data, device) -> torch.Tensor:
     return (saved if saved is not None else data.background).to(device).float().clamp(0, 1)
 
 
+def _sampler(conf, state, box, device):
+    """The run's ray sampler (occupancy grid / SDF cache) with its checkpointed state."""
+    sampler = SAMPLERS.build(conf.sampler, scene_box=box).to(device)
+    saved = state.get("extra", {}).get("sampler")
+    if saved is not None and hasattr(sampler, "load_state_dict"):
+        sampler.load_state_dict(saved)
+    return sampler
+
+
 def _nerf(conf, state, data, device, chunk) -> Render:
     from l3d_app.render.radiance import render_field_rays
 
     box = data.scene_box.tolist()
     model = MODELS.build(conf.model, scene_box=box).to(device).eval()
     model.load_state_dict(state["modules"]["field"])
-    kw = dict(scene_box=box, n_samples=int(conf.n_samples), n_fine=int(conf.get("n_fine", 0)),
-              background=_background(state, data, device))
-    return _field_renderer(lambda o, d: render_field_rays(model, o, d, **kw), chunk)
+    sampler, background = _sampler(conf, state, box, device), _background(state, data, device)
+    return _field_renderer(lambda o, d: render_field_rays(model, o, d, sampler, background=background), chunk)
 
 
 def _volsdf(conf, state, data, device, chunk) -> Render:
-    from l3d_app.render.densities import LaplaceDensity
+    from l3d_app.models.sdf_gradients import field_with_gradient
     from l3d_app.render.sdf_volume import render_sdf_rays
 
     box = data.scene_box.tolist()
     model = MODELS.build(conf.model, scene_box=box).to(device).eval()
     model.load_state_dict(state["modules"]["field"])
-    alpha = conf.get("alpha")
-    dens = LaplaceDensity(float(conf.beta), None if alpha is None else float(alpha),
-                          learnable=str(conf.beta_mode) == "learnable", beta_min=float(conf.beta_min)).to(device)
+    dens = DENSITIES.build(conf.density).to(device)
     dens.load_state_dict(state["modules"]["density"])
-    kw = dict(scene_box=box, density=str(conf.density), alpha=dens.alpha, beta=dens.beta, s=float(conf.s),
-              n_coarse=int(conf.n_coarse), n_fine=int(conf.n_fine), background=_background(state, data, device))
-    return _field_renderer(lambda o, d: render_sdf_rays(model.sdf, model, o, d, **kw), chunk)
+    sampler, background = _sampler(conf, state, box, device), _background(state, data, device)
+    field_fn = field_with_gradient(model)
+    return _field_renderer(lambda o, d: render_sdf_rays(field_fn, o, d, sampler, dens, field=model,
+                                                        background=background), chunk, normalize=False)
 
 
 def _gaussian_renderer(model, sh_degree: int, background, tile_size: int = 4) -> Render:
