@@ -136,3 +136,24 @@ def test_unsupported_model_and_missing_intrinsics(tmp_path):
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(UserError, match="has no 'fl_y'"):
         nerfstudio(str(tmp_path))
+
+
+def test_box_without_points_is_centred_where_the_cameras_look(tmp_path):
+    """No point cloud: the box is centred on the point the optical axes meet at (the look-at target of
+    write_ns's cameras, the source origin), not on the cameras' mean, which lies above it here."""
+    from l3d_app.data.captures import focus_point
+
+    write_ns(tmp_path)                                      # cameras at elevations -5..45, looking at 0
+    d = nerfstudio(str(tmp_path))
+    M = d.source_from_world
+    target = (torch.zeros(3, dtype=torch.float64) - M[:3, 3]) @ torch.linalg.inv(M[:3, :3]).T   # source 0 -> ours
+    centre = d.scene_box.double().mean(0)
+    torch.testing.assert_close(centre, target, atol=1e-4, rtol=0)
+    assert float(target.norm()) > 0.3                       # the cameras' mean is not the target
+    # parallel axes (a forward-facing capture): no focus point; the box stays about the origin
+    R = torch.eye(3).expand(6, 3, 3).clone()
+    t = torch.randn(6, 3, generator=torch.Generator().manual_seed(0))
+    assert focus_point(R, t) is None
+    # the point behind the cameras (all looking away from it) is refused too
+    cams = look_at_cameras(3.0, torch.full((8,), 10.0), torch.arange(8) * 45.0, 50.0, W)
+    assert focus_point(cams.R, cams.t) is not None and focus_point(cams.R, -cams.t) is None

@@ -11,7 +11,9 @@ Conventions shared by ``data=colmap`` and ``data=nerfstudio``:
   dataset's ``source_from_world`` (4x4) so exports map back to the capture's coordinates.
 * Scene box: the ``box_percentile`` .. ``100 - box_percentile`` per-axis range of the sparse
   points grown by ``box_margin`` of its extent per side; without points, a cube of half-size
-  ``camera_radius / 2`` about the origin (the cameras look inward).
+  ``camera_radius / 2`` about the cameras' focus point (:func:`focus_point`: where their optical
+  axes meet, which for a capture from above lies below the cameras' mean), or about the origin
+  when the axes do not meet in front of the cameras (a forward-facing capture).
 * Background: real photographs have one. ``background=auto`` takes the per-channel median of
   the training images' border pixels as the initial colour and sets
   ``background_known=False`` on the dataset: fields should learn the colour behind the box
@@ -67,16 +69,39 @@ def normalize_scene(R: torch.Tensor, t: torch.Tensor, points: Optional[torch.Ten
     return t_new, pts, M
 
 
+def focus_point(R: torch.Tensor, t: torch.Tensor, min_spread: float = 0.05, min_in_front: float = 0.9
+                ) -> Optional[torch.Tensor]:
+    """(3,) float64 point nearest, in least squares, to every camera's optical axis, or None.
+
+    Args:
+        R: (N, 3, 3) world->camera rotations (the camera looks along its +Z); t: (N, 3).
+        min_spread: smallest eigenvalue of ``mean(I - d d^T)`` accepted (0 when all axes are parallel).
+        min_in_front: share of cameras that must have the point in front of them.
+    """
+    R64, t64 = R.double(), t.double()
+    centres = -(R64.transpose(1, 2) @ t64[..., None])[..., 0]                  # (N, 3)
+    axes = R64[:, 2, :]                                                          # (N, 3) unit viewing axes
+    proj = torch.eye(3, dtype=torch.float64) - axes[:, :, None] * axes[:, None, :]   # (N, 3, 3)
+    A = proj.mean(0)
+    if len(centres) < 2 or float(torch.linalg.eigvalsh(A)[0]) < float(min_spread):
+        return None
+    p = torch.linalg.solve(A, (proj @ centres[..., None])[..., 0].mean(0))
+    in_front = (((p - centres) * axes).sum(-1) > 0).double().mean()
+    return p if float(in_front) >= float(min_in_front) else None
+
+
 def scene_box(points: Optional[torch.Tensor], camera_radius: float, percentile: float = 2.0,
-              margin: float = 0.1) -> torch.Tensor:
-    """(2, 3) box from robust per-axis percentiles of ``points`` (see the module docstring)."""
+              margin: float = 0.1, centre: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """(2, 3) box from robust per-axis percentiles of ``points``; without points a cube of half-size
+    ``camera_radius / 2`` about ``centre`` (default the origin; see the module docstring)."""
     if points is not None and len(points) >= 10:
         q = torch.tensor([percentile / 100.0, 1.0 - percentile / 100.0], dtype=torch.float64)
         lo, hi = torch.quantile(points.double(), q, dim=0)
         pad = float(margin) * (hi - lo).clamp_min(1e-6)
         return torch.stack([lo - pad, hi + pad]).float()
     h = 0.5 * float(camera_radius)
-    return torch.tensor([[-h] * 3, [h] * 3])
+    c = torch.zeros(3) if centre is None else centre.float()
+    return torch.stack([c - h, c + h])
 
 
 def load_images(files: Sequence[Path], sizes: Sequence[Tuple[int, int]], intrinsics: np.ndarray,
