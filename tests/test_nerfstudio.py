@@ -141,7 +141,8 @@ def test_unsupported_model_and_missing_intrinsics(tmp_path):
 def test_box_without_points_is_centred_where_the_cameras_look(tmp_path):
     """No point cloud: the box is centred on the point the optical axes meet at (the look-at target of
     write_ns's cameras, the source origin), not on the cameras' mean, which lies above it here."""
-    from l3d_app.data.captures import focus_point
+    from l3d_app.data.captures import focus_point, scene_box
+    from l3d_app.geometry.cameras import Cameras
 
     write_ns(tmp_path)                                      # cameras at elevations -5..45, looking at 0
     d = nerfstudio(str(tmp_path))
@@ -151,9 +152,13 @@ def test_box_without_points_is_centred_where_the_cameras_look(tmp_path):
     torch.testing.assert_close(centre, target, atol=1e-4, rtol=0)
     assert float(target.norm()) > 0.3                       # the cameras' mean is not the target
     # parallel axes (a forward-facing capture): no focus point; the box stays about the origin
-    R = torch.eye(3).expand(6, 3, 3).clone()
-    t = torch.randn(6, 3, generator=torch.Generator().manual_seed(0))
-    assert focus_point(R, t) is None
+    one = torch.ones(6)
+    flat = Cameras(torch.eye(3).expand(6, 3, 3).clone(), torch.randn(6, 3, generator=torch.Generator().manual_seed(0)),
+                   30 * one, 30 * one, 20 * one, 15 * one, W, H)
+    assert focus_point(flat) is None
+    torch.testing.assert_close(scene_box(None, 3.0, cameras=flat), torch.tensor([[-1.5] * 3, [1.5] * 3]))
     # the point behind the cameras (all looking away from it) is refused too
     cams = look_at_cameras(3.0, torch.full((8,), 10.0), torch.arange(8) * 45.0, 50.0, W)
-    assert focus_point(cams.R, cams.t) is not None and focus_point(cams.R, -cams.t) is None
+    away = Cameras(cams.R, -cams.t, cams.fx, cams.fy, cams.cx, cams.cy, cams.width, cams.height)
+    torch.testing.assert_close(focus_point(cams), torch.zeros(3, dtype=torch.float64), atol=1e-5, rtol=0)
+    assert focus_point(away) is None

@@ -30,6 +30,7 @@ import torch
 
 from l3d_app.data.nerf_formats import _read_image, _to_float_rgb
 from l3d_app.data.nerf_views import background_rgb, carve_val
+from l3d_app.geometry.cameras import Cameras
 from l3d_app.errors import UserError
 from l3d_app.geometry.distortion import undistort_image
 
@@ -69,18 +70,16 @@ def normalize_scene(R: torch.Tensor, t: torch.Tensor, points: Optional[torch.Ten
     return t_new, pts, M
 
 
-def focus_point(R: torch.Tensor, t: torch.Tensor, min_spread: float = 0.05, min_in_front: float = 0.9
-                ) -> Optional[torch.Tensor]:
+def focus_point(cameras: Cameras, min_spread: float = 0.05, min_in_front: float = 0.9) -> Optional[torch.Tensor]:
     """(3,) float64 point nearest, in least squares, to every camera's optical axis, or None.
 
     Args:
-        R: (N, 3, 3) world->camera rotations (the camera looks along its +Z); t: (N, 3).
+        cameras: N cameras (each looks along its +Z).
         min_spread: smallest eigenvalue of ``mean(I - d d^T)`` accepted (0 when all axes are parallel).
         min_in_front: share of cameras that must have the point in front of them.
     """
-    R64, t64 = R.double(), t.double()
-    centres = -(R64.transpose(1, 2) @ t64[..., None])[..., 0]                  # (N, 3)
-    axes = R64[:, 2, :]                                                          # (N, 3) unit viewing axes
+    centres = cameras.centers().double()                                       # (N, 3)
+    axes = cameras.R.double()[:, 2, :]                                           # (N, 3) unit viewing axes
     proj = torch.eye(3, dtype=torch.float64) - axes[:, :, None] * axes[:, None, :]   # (N, 3, 3)
     A = proj.mean(0)
     if len(centres) < 2 or float(torch.linalg.eigvalsh(A)[0]) < float(min_spread):
@@ -91,16 +90,17 @@ def focus_point(R: torch.Tensor, t: torch.Tensor, min_spread: float = 0.05, min_
 
 
 def scene_box(points: Optional[torch.Tensor], camera_radius: float, percentile: float = 2.0,
-              margin: float = 0.1, centre: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """(2, 3) box from robust per-axis percentiles of ``points``; without points a cube of half-size
-    ``camera_radius / 2`` about ``centre`` (default the origin; see the module docstring)."""
+              margin: float = 0.1, cameras: Optional[Cameras] = None) -> torch.Tensor:
+    """(2, 3) box from robust per-axis percentiles of ``points``; with fewer than 10 points a cube of
+    half-size ``camera_radius / 2`` about the ``cameras``' :func:`focus_point`, else about the origin."""
     if points is not None and len(points) >= 10:
         q = torch.tensor([percentile / 100.0, 1.0 - percentile / 100.0], dtype=torch.float64)
         lo, hi = torch.quantile(points.double(), q, dim=0)
         pad = float(margin) * (hi - lo).clamp_min(1e-6)
         return torch.stack([lo - pad, hi + pad]).float()
     h = 0.5 * float(camera_radius)
-    c = torch.zeros(3) if centre is None else centre.float()
+    focus = None if cameras is None else focus_point(cameras)
+    c = torch.zeros(3) if focus is None else focus.float()
     return torch.stack([c - h, c + h])
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from l3d_app.data.captures import (border_background, focus_point, image_files, load_images, normalize_scene,
+from l3d_app.data.captures import (border_background, image_files, load_images, normalize_scene,
                                    scene_box, split_by_name)
 from l3d_app.data.colmap_model import find_model_files, qvec_to_rotmat, read_model
 from l3d_app.data.nerf_views import MultiViewData, background_rgb
@@ -82,7 +82,7 @@ def colmap(root: str = None, images: str = "images", sparse: str = "sparse/0", d
     bg, known = border_background(imgs[train], background)
     box = scene_box(pts, float(camera_radius) if normalize else float(
         (cams.centers() - cams.centers().mean(0)).norm(dim=-1).median()), float(box_percentile), float(box_margin),
-        centre=focus_point(cams.R, cams.t) if pts is None or len(pts) < 10 else None)
+        cameras=cams)
     data = MultiViewData(imgs, cams, train, val, test, bg, box, name=f"colmap:{folder.name}",
                          points=None if pts is None else pts.float(), point_colors=cols,
                          source_from_world=M, background_known=known)

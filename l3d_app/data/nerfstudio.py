@@ -27,7 +27,7 @@ from typing import Optional, Tuple
 import numpy as np
 import torch
 
-from l3d_app.data.captures import (border_background, focus_point, image_files, load_images, normalize_scene,
+from l3d_app.data.captures import (border_background, image_files, load_images, normalize_scene,
                                    scene_box, split_by_name)
 from l3d_app.data.nerf_views import MultiViewData, background_rgb
 from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
@@ -163,8 +163,7 @@ def nerfstudio(root: str = None, transforms: str = "transforms.json", downscale:
         train, val, test = split_by_name(names, int(test_every), int(val_every))
     bg, known = border_background(imgs[train], background)
     radius = float(camera_radius) if normalize else float((cams.centers() - cams.centers().mean(0)).norm(dim=-1).median())
-    box = scene_box(pts, radius, float(box_percentile), float(box_margin),
-                    centre=focus_point(cams.R, cams.t) if pts is None else None)
+    box = scene_box(pts, radius, float(box_percentile), float(box_margin), cameras=cams)
     data = MultiViewData(imgs, cams, train, val, test, bg, box, name=f"nerfstudio:{folder.name}",
                          points=None if pts is None else pts.float(), point_colors=cols,
                          source_from_world=source_from_world, background_known=known)
