@@ -141,6 +141,31 @@ def test_fit_point_reaches_sampling_floor(compose, tmp_path):
     assert m["chamfer"] <= 2.0 * m["chamfer_baseline"]
     assert m["f1"] >= 0.9 * m["f1_baseline"]  # 600 points are sparse: F1@0.05 is capped by sampling
     assert (tmp_path / "fit_point.gif").exists()
+    # the periodic evaluation read the VAL sample, the final figures the TEST sample: history's
+    # last entry is the val figure, a different number from the test one (independent samples)
+    assert [h["step"] for h in m["history"]] == [100, 200]
+    assert m["history"][-1]["chamfer"] == pytest.approx(m["val_chamfer"], abs=1e-5)  # history keeps 5 digits
+    assert m["val_chamfer"] != pytest.approx(m["chamfer"], rel=1e-6)
+    assert m["val_chamfer"] <= 2.0 * m["chamfer_baseline"]
+
+
+def test_held_out_surface_streams_are_seeded_and_independent():
+    from omegaconf import OmegaConf
+    from l3d_app.geometry.primitives import icosphere
+    from l3d_app.tasks.fit_common import eval_generator, held_out_surface
+    mesh = icosphere(2, 1.0)
+    cfg = OmegaConf.create({"seed": 3, "eval_seed_offset": 7919})
+    a, b = held_out_surface(mesh, 500, cfg, "cpu"), held_out_surface(mesh, 500, cfg, "cpu")
+    for k in ("val", "test", "test_other"):
+        assert a[k].shape == (500, 3) and torch.equal(a[k], b[k])   # the same for every run with that seed
+    assert not torch.allclose(a["val"], a["test"]) and not torch.allclose(a["test"], a["test_other"])
+    # the streams are seeded apart: val = test + 1, a task's stream 1 = test + 2
+    draw = lambda g: torch.rand(4, generator=g)
+    assert not torch.equal(draw(eval_generator(cfg, "cpu", "val")), draw(eval_generator(cfg, "cpu", "test")))
+    assert torch.equal(draw(eval_generator(cfg, "cpu", "test", stream=1)),
+                       draw(torch.Generator().manual_seed(3 + 7919 + 2)))
+    with pytest.raises(ValueError):
+        eval_generator(cfg, "cpu", "train")
 
 
 def test_fit_mesh_fits_cube(compose, tmp_path):
@@ -150,3 +175,4 @@ def test_fit_mesh_fits_cube(compose, tmp_path):
         assert key in m
     assert m["f1"] >= 0.85
     assert (tmp_path / "fit_mesh.gif").exists() and (tmp_path / "fit_mesh.obj").exists()
+    assert [h["step"] for h in m["history"]] == [75, 150] and m["val_f1"] >= 0.85

@@ -135,3 +135,27 @@ def test_train_prior_lr_schedule():
     assert _lr_factor("none", 1000, 0, 100, 0.05)(999) == 1.0
     with pytest.raises(UserError):
         _lr_factor("step", 1000, 0, 100, 0.05)
+
+
+def test_train_prior_reads_val_noise_every_evaluation_and_test_noise_once(compose, tmp_path, monkeypatch):
+    """The periodic evaluation samples from the VAL noise (seed + eval_seed_offset + 1) and writes
+    ``history`` / ``val_*``; the TEST noise (seed + eval_seed_offset) is drawn once, after training."""
+    import json
+    import l3d_app.tasks.train_prior as tp
+    from l3d_app.app import run_task
+    seeds = []
+    real = tp.ddim_sample
+
+    def recording(prior, prompts, steps, scale, generator):
+        seeds.append(generator.initial_seed())
+        return real(prior, prompts, steps, scale, generator)
+
+    monkeypatch.setattr(tp, "ddim_sample", recording)
+    cfg = compose("task=train_prior", "space=pixel", "iters=4", "eval_every=2", "eval_prompts=3", "sample_steps=2",
+                  "batch_size=4", "checkpoint_every=0", "seed=5", "threads=1")
+    run_task(cfg, out_dir=tmp_path)
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert seeds == [5 + 7 + 1, 5 + 7 + 1, 5 + 7]          # val at steps 2 and 4, then test once
+    assert [h["step"] for h in m["history"]] == [2, 4]
+    assert "val_sample_match_pixel" in m and "sample_match_pixel" in m
+    assert m["history"][-1]["sample_match_pixel"] == pytest.approx(m["val_sample_match_pixel"], abs=1e-4)

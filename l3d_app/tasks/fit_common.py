@@ -1,16 +1,17 @@
 """Pieces shared by the fitting tasks (fit_vox, fit_point, fit_mesh): the target, the
-held-out evaluation generator, the side-by-side turntable of fit and target, and the
+held-out val / test samples of its surface, the side-by-side turntable of fit and target, and the
 common knob checks."""
 
 from __future__ import annotations
 
-from typing import Union
+from typing import Dict, Union
 
 import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.pointcloud import PointCloud
+from l3d_app.geometry.sampling import sample_points_on_mesh
 from l3d_app.registry import CAMERA_PATHS, DATASETS, RENDERERS
 from l3d_app.runtime.media import save_gif
 from l3d_app.tasks.common import render_frames, require_positive
@@ -26,10 +27,25 @@ def load_target_mesh(cfg, device) -> Mesh:
     return mesh
 
 
-def eval_generator(cfg, device) -> torch.Generator:
-    """A generator for held-out evaluation samples, seeded ``seed + eval_seed_offset``: a
-    stream independent of the training draws, the same for every run with that seed."""
-    return torch.Generator(device=device).manual_seed(int(cfg.seed) + int(cfg.eval_seed_offset))
+def eval_generator(cfg, device, split: str = "test", stream: int = 0) -> torch.Generator:
+    """A generator for held-out evaluation samples, independent of the training draws and
+    the same for every run with that seed: seeded ``seed + eval_seed_offset + 2 * stream``,
+    plus one for ``split="val"``, so that the val and test streams (and a task's further
+    ``stream`` s, e.g. draws on the fitted surface) never share a draw."""
+    if split not in ("val", "test"):
+        raise ValueError(f"split must be 'val' or 'test', not {split!r}")
+    offset = int(cfg.eval_seed_offset) + 2 * int(stream) + (1 if split == "val" else 0)
+    return torch.Generator(device=device).manual_seed(int(cfg.seed) + offset)
+
+
+def held_out_surface(mesh: Mesh, n: int, cfg, device) -> Dict[str, torch.Tensor]:
+    """Samples of the target surface that training never sees, each ``(n, 3)`` world units:
+    ``val`` (read by the periodic evaluation), ``test`` (read once, at the end) and
+    ``test_other`` (a second test-side sampling: the sampling floor ``chamfer_baseline``)."""
+    gen_test, gen_val = eval_generator(cfg, device, "test"), eval_generator(cfg, device, "val")
+    test = sample_points_on_mesh(mesh, n, gen_test).points
+    other = sample_points_on_mesh(mesh, n, gen_test).points
+    return {"val": sample_points_on_mesh(mesh, n, gen_val).points, "test": test, "test_other": other}
 
 
 def check_fit_knobs(cfg, *extra: str) -> None:

@@ -3,10 +3,12 @@
 The ``num_points`` fitted points start as a random ball of ``init_radius``; each step draws a
 fresh target sample of as many points on the mesh (area-uniform, the run's generator) and
 takes an Adam step on the chamfer distance (squared, world units^2), with a cosine-decayed
-learning rate. Evaluation uses a FIXED held-out sample of the surface, so the error floor is
-the sampling gap: ``chamfer_baseline`` = chamfer between two independent samplings of the
-target (held-out vs another), reported beside the fit's ``chamfer`` and ``f1`` (at
-``f1_threshold``). Writes fit_point.gif: fitted points (left) beside the held-out target.
+learning rate. Evaluation uses FIXED held-out samples of the surface that training never
+draws (``fit_common.held_out_surface``): the periodic evaluation reads the VAL sample
+(``history``, ``val_chamfer``, ``val_f1``), the TEST sample is read once, at the end
+(``chamfer``, ``f1`` at ``f1_threshold``). The error floor is the sampling gap:
+``chamfer_baseline`` = chamfer between two independent test-side samplings of the target.
+Writes fit_point.gif: fitted points (left) beside the test sample.
 """
 
 from __future__ import annotations
@@ -18,9 +20,8 @@ from l3d_app.geometry.sampling import sample_points_on_mesh
 from l3d_app.metrics.chamfer import chamfer_distance
 from l3d_app.metrics.fscore import fscore
 from l3d_app.registry import TASKS
-from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.fit_common import (check_fit_knobs, eval_generator, load_target_mesh,
-                                      side_by_side_turntable)
+from l3d_app.runtime.training import Trainable, log_test, train
+from l3d_app.tasks.fit_common import check_fit_knobs, held_out_surface, load_target_mesh, side_by_side_turntable
 
 
 def random_ball(n: int, radius: float, generator: torch.Generator, device=None) -> torch.Tensor:
@@ -36,11 +37,9 @@ def fit_point(cfg, ctx) -> dict:
     check_fit_knobs(cfg, "num_points", "init_radius", "lr", "eval_every", "f1_threshold")
     target_mesh = load_target_mesh(cfg, ctx.device)
     n, t = int(cfg.num_points), float(cfg.f1_threshold)
-    gen_eval = eval_generator(cfg, ctx.device)
-    held_out = sample_points_on_mesh(target_mesh, n, gen_eval).points
-    other = sample_points_on_mesh(target_mesh, n, gen_eval).points
-    baseline = float(chamfer_distance(held_out, other))
-    baseline_f1 = fscore(other, held_out, t)["f1"]
+    held_out = held_out_surface(target_mesh, n, cfg, ctx.device)
+    baseline = float(chamfer_distance(held_out["test"], held_out["test_other"]))
+    baseline_f1 = fscore(held_out["test_other"], held_out["test"], t)["f1"]
 
     points = torch.nn.Parameter(random_ball(n, float(cfg.init_radius), ctx.generator, ctx.device))
     holder = torch.nn.ParameterDict({"points": points})
@@ -52,18 +51,21 @@ def fit_point(cfg, ctx) -> dict:
         target = sample_points_on_mesh(target_mesh, n, ctx.generator).points
         return {"loss": chamfer_distance(holder["points"], target)}
 
-    def evaluate(_i):
-        pts = holder["points"].detach()
-        return {"chamfer": float(chamfer_distance(pts, held_out)), **fscore(pts, held_out, t)}
+    def evaluate_on(split: str) -> dict:
+        pts, truth = holder["points"].detach(), held_out[split]
+        return {"chamfer": float(chamfer_distance(pts, truth)), **fscore(pts, truth, t)}
 
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step, int(cfg.iters), evaluate, int(cfg.eval_every),
+        result = train(ctx, trainable, step, int(cfg.iters), lambda _i: evaluate_on("val"), int(cfg.eval_every),
                        int(cfg.checkpoint_every), bool(cfg.resume), desc="fit_point")
-    final = evaluate(result.step)
+    final = evaluate_on("test")
+    log_test(ctx, final, result.step)
     with ctx.stopwatch.stage("render"):
         side_by_side_turntable(cfg, ctx, PointCloud(holder["points"].detach().clone()),
-                               PointCloud(held_out), "fit_point.gif")
+                               PointCloud(held_out["test"]), "fit_point.gif")
     return {
+        **{k: v for k, v in result.val_metrics(6).items() if k in ("val_chamfer", "val_f1")},
+        "history": result.history_rows(),
         "chamfer": final["chamfer"],
         "chamfer_baseline": baseline,
         "chamfer_ratio": final["chamfer"] / baseline,

@@ -9,10 +9,11 @@ stays (``lr_decay=none``) or falls along a cosine to 5% at the end (``lr_decay=c
 a fixed batch) and then trains its U-Net. Exponential moving averages of the weights
 (``ema_decay``) are what gets evaluated and exported.
 
-Evaluation (every ``eval_every`` steps and at the end): DDIM samples (``sample_steps``
-steps, guidance ``eval_guidance``) of ``eval_prompts`` fully specified prompts per space,
-scored by the independent checker (:mod:`l3d_app.metrics.prompt_match`) as
-``sample_match_<space>``. Runs through the shared training loop (checkpoints, resume,
+Evaluation: DDIM samples (``sample_steps`` steps, guidance ``eval_guidance``) of
+``eval_prompts`` fully specified prompts per space, scored by the independent checker
+(:mod:`l3d_app.metrics.prompt_match`): every ``eval_every`` steps from the VALIDATION noise
+(``val_sample_match_<space>``, ``history``), once at the end from the TEST noise
+(``sample_match_<space>``; the two noise streams are seeded apart). Runs through the shared training loop (checkpoints, resume,
 NaN guard). Outputs: ``builtin_prior.pt`` (float16 weights, loadable with
 ``prior.checkpoint=<run dir>/builtin_prior.pt``; with ``export=PATH`` also written there,
 keeping the other space of an existing checkpoint at PATH), with the command line, seed and
@@ -37,7 +38,7 @@ from l3d_app.registry import TASKS
 from l3d_app.runtime.lr_schedules import warmup_cosine
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.paths import resolve_path
-from l3d_app.runtime.training import Trainable, train
+from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import require_positive
 from l3d_app.tasks.prior_common import full_prompts, image_grid
 
@@ -117,9 +118,11 @@ def train_prior(cfg, ctx) -> dict:
 
     samples: Dict[str, torch.Tensor] = {}
 
-    def evaluate(_i: int) -> Dict[str, float]:
+    def evaluate(_i: int, split: str) -> Dict[str, float]:
+        """DDIM samples from the split's own noise: val = seed + eval_seed_offset + 1 (every
+        evaluation), test = seed + eval_seed_offset (once, at the end)."""
         out = {}
-        g = torch.Generator(dev).manual_seed(int(cfg.seed) + int(cfg.eval_seed_offset))
+        g = torch.Generator(dev).manual_seed(int(cfg.seed) + int(cfg.eval_seed_offset) + (split == "val"))
         for s in spaces:
             if s == "latent" and _i <= ae_iters:
                 continue
@@ -128,22 +131,26 @@ def train_prior(cfg, ctx) -> dict:
         return out
 
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step, int(cfg.iters), evaluate, int(cfg.eval_every),
+        result = train(ctx, trainable, step, int(cfg.iters), lambda i: evaluate(i, "val"), int(cfg.eval_every),
                        int(cfg.checkpoint_every), bool(cfg.resume), desc="train_prior", after_step=after)
+    test = evaluate(result.step, "test")
+    log_test(ctx, test, result.step)
     for s, imgs in samples.items():
         grid = image_grid(imgs, cols=max(1, int(cfg.eval_prompts) // 3))
         save_png(ctx.path(f"samples_{s}.png"), grid)
         ctx.logger.image(f"samples/{s}", grid, result.step)
     meta = {"command": "python main.py " + " ".join(sys.argv[1:]), "seed": int(cfg.seed),
             "iters": result.step, "batch_size": int(cfg.batch_size),
-            **{k: round(float(v), 4) for k, v in result.metrics.items()}}
+            **{k: round(float(v), 4) for k, v in test.items()}}
     state = export_state({s: ema[s].cpu() for s in spaces}, meta)
     out_path = ctx.path("builtin_prior.pt")
     save_prior_checkpoint(out_path, state)
     if cfg.get("export"):
         save_prior_checkpoint(resolve_path(str(cfg.export)), state, merge=True)
-    metrics = {k: round(float(v), 4) for k, v in result.metrics.items() if k != "seconds"}
+    metrics = {k: round(float(v), 4) for k, v in test.items()}
     metrics.update({
+        **result.val_metrics(),
+        "history": result.history_rows(),
         "iters": result.step,
         "n_params": sum(p.numel() for m in live.values() for p in m.parameters()),
         "checkpoint_bytes": out_path.stat().st_size,
