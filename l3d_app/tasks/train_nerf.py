@@ -29,6 +29,7 @@ from l3d_app.render.radiance import render_field_rays
 from l3d_app.render.turntable import color_depth_frames, data_up, orbit_cameras, write_turntable
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.optim import build_optimizer
+from l3d_app.runtime.precision import maybe_compile
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import background_parameter, require_positive
@@ -56,8 +57,12 @@ def train_nerf(cfg, ctx) -> dict:
     n_rays, batch = flat_o.shape[0], int(cfg.batch_rays)
     stats = {"samples_per_ray": 0.0, "train_seconds": 0.0, "steps": 0}
 
+    # compile_field: the radiance calls go through torch.compile (the sampler's density probes stay eager)
+    field = maybe_compile(model, enabled=bool(cfg.compile_field))
+
     def render_fn(o, d, **kw):
-        return render_field_rays(model, o, d, sampler, background=background["rgb"].clamp(0, 1), **kw)
+        return render_field_rays(field, o, d, sampler, background=background["rgb"].clamp(0, 1),
+                                 density_field=model, **kw)
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
         stats["_t0"] = time.perf_counter()
