@@ -173,3 +173,48 @@ def test_laplace_density_learnable_beta_and_tied_alpha():
     with pytest.raises(ValueError):
         LaplaceDensity(1e-4, None, beta_min=1e-3)
     assert math.isfinite(float(fixed(sdf).sum()))
+
+
+def test_evaluation_renders_skip_the_field_on_rays_that_pass_no_surface():
+    """Without gradients, rays whose coarse opacity is below ``skip_opacity`` get no fine sample:
+    the image equals the full render (every ray sampled) to within that opacity, the rays that
+    miss the sphere cost no field evaluation, and training renders (grad on) never skip."""
+    sph = Sphere(0.5)
+    dens = LaplaceDensity(0.01, None, learnable=False, beta_min=0.0)
+    torch.manual_seed(1)
+    o = torch.nn.functional.normalize(torch.randn(200, 3), dim=-1) * 2.5
+    # aim at points spread over a ball of radius 1.4 about the sphere: some rays hit, some pass by
+    aim = torch.nn.functional.normalize(torch.randn(200, 3), dim=-1) * torch.rand(200, 1) * 1.4
+    d = torch.nn.functional.normalize(aim - o, dim=-1)
+    b = (o * d).sum(-1)
+    miss_by = (o.norm(dim=-1) ** 2 - b ** 2).sqrt() - 0.5          # closest approach to the surface
+    calls = {"n": 0}
+
+    def colour(p, v):
+        calls["n"] += p.shape[0]
+        return sph(p), torch.full((p.shape[0], 3), 0.25)
+
+    white = torch.ones(3)
+    renders = {}
+    for skip in (0.0, 1e-4):
+        est = SDFCacheProposal(BOX, n_coarse=96, n_fine=16, resolution=32, skip_opacity=skip)
+        est.update(0, SimpleNamespace(sdf=sph))
+        calls["n"] = 0
+        with torch.no_grad():
+            renders[skip] = (render_sdf_rays(colour, o, d, est, dens, background=white), calls["n"])
+    (full, n_full), (fast, n_fast) = renders[0.0], renders[1e-4]
+    assert n_full == 200 * 16
+    far = miss_by > 0.3              # 30 betas (17 widened ones) from the surface: nothing to see
+    assert int(far.sum()) > 40 and int((miss_by < 0).sum()) > 40
+    assert n_fast <= 16 * int((~far).sum())          # the far rays were not evaluated
+    assert float((fast["color"] - full["color"]).abs().max()) < 1e-3
+    torch.testing.assert_close(fast["color"][far], white.expand(int(far.sum()), 3))
+    assert float(fast["fine_samples_per_ray"]) == pytest.approx(n_fast / 200)
+    # with gradients on (training) the same estimator samples every ray
+    calls["n"] = 0
+    est = SDFCacheProposal(BOX, n_coarse=96, n_fine=16, resolution=32, skip_opacity=1e-4)
+    est.update(0, SimpleNamespace(sdf=sph))
+    render_sdf_rays(colour, o.requires_grad_(), d, est, dens, background=white)
+    assert calls["n"] == 200 * 16
+    with pytest.raises(ValueError):
+        SDFCacheProposal(BOX, skip_opacity=1.0)

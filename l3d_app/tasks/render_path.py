@@ -94,6 +94,9 @@ def _volsdf(conf, state, data, device, chunk) -> Render:
     dens = DENSITIES.build(conf.density).to(device)
     dens.load_state_dict(state["modules"]["density"])
     sampler, background = _sampler(conf, state, box, device), _background(state, data, device)
+    # as volsdf does before its test views: the SDF cache is refreshed from the final field (the
+    # checkpointed copy can be up to `every` steps old, and evaluation renders skip the rays it calls empty)
+    sampler.update(int(state.get("step", 0)), model, None, force=True)
     field_fn = field_with_gradient(model)
     return _field_renderer(lambda o, d: render_sdf_rays(field_fn, o, d, sampler, dens, field=model,
                                                         background=background), chunk, normalize=False)

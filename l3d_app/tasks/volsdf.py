@@ -150,6 +150,8 @@ def volsdf(cfg, ctx) -> dict:
 
     def evaluate(views: torch.Tensor):
         views = views.to(ctx.device)
+        with torch.no_grad():   # a fresh SDF cache (step -1: not a training step; the schedule goes on)
+            sampler.update(-1, model, ctx.generator, force=True)   # evaluation renders skip the rays it calls empty
         return evaluate_views(render, data.cameras[views], data.images[views], int(cfg.chunk), int(cfg.supersample))
 
     val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val

@@ -26,19 +26,27 @@ class SDFCacheProposal(Estimator):
        coarse samples is still seen);
     3. ``n_fine`` samples drawn from those weights (``padding`` keeps a little mass everywhere).
 
-    Every ray keeps exactly ``n_fine`` samples; a ray that misses the box gets zero-length
-    segments at its start (optical depth 0, background colour), so batches keep one shape.
+    While training (gradients on) every ray keeps exactly ``n_fine`` samples; a ray that misses
+    the box gets zero-length segments at its start (optical depth 0, background colour), so
+    batches keep one shape. In evaluation renders (gradients off) a ray whose coarse opacity is
+    below ``skip_opacity`` gets no fine sample at all: its colour is the background, which
+    differs from the full render by at most about that opacity times the colour range, and
+    saves the field's ``n_fine`` evaluations on every ray that passes no surface.
     ``samples_per_ray`` of this estimator (see :meth:`stats`) counts both passes.
     """
 
     def __init__(self, scene_box: Box, n_coarse: int = 128, n_fine: int = 16, resolution: int = 64,
-                 every: int = 32, padding: float = 1e-3):
+                 every: int = 32, padding: float = 1e-3, skip_opacity: float = 1e-4):
         super().__init__(scene_box)
         if int(n_coarse) < 2 or int(n_fine) < 2:
             raise ValueError(f"n_coarse and n_fine must be >= 2, got {n_coarse}, {n_fine}")
         if int(every) < 1:
             raise ValueError(f"every must be >= 1, got {every}")
+        if not 0.0 <= float(skip_opacity) < 1.0:
+            raise ValueError(f"skip_opacity must be in [0, 1), got {skip_opacity}")
         self.n_coarse, self.n_fine, self.every, self.padding = int(n_coarse), int(n_fine), int(every), float(padding)
+        self.skip_opacity = float(skip_opacity)
+        self._fine_fraction = 1.0
         self.cache = SDFGridCache(scene_box, int(resolution)) if int(resolution) > 1 else None
         self._fresh = False
         self._hit_fraction = 1.0
@@ -52,6 +60,7 @@ class SDFCacheProposal(Estimator):
                  generator: Optional[torch.Generator] = None, field=None, density=None, **field_kw) -> Samples:
         if density is None or (self.cache is None and field is None):
             raise ValueError("the sdf_cache estimator needs density= (and field= without a cache)")
+        evaluating = not torch.is_grad_enabled()     # read before the no_grad block below
         near, far, hit = self.bounds(origins, dirs)
         t_c = stratified_samples(near, far, self.n_coarse, perturb=perturb, generator=generator)
         with torch.no_grad():
@@ -62,14 +71,19 @@ class SDFCacheProposal(Estimator):
             edges = torch.cat([t_c, far[:, None]], dim=-1)   # each coarse sample owns [t_i, t_{i+1}]
             edges = torch.maximum(edges, torch.cat([edges[:, :1], edges[:, :-1]], dim=-1))
             t = sample_pdf(edges, w_c, self.n_fine, perturb=perturb, generator=generator, padding=self.padding)
+            keep = torch.ones_like(t, dtype=torch.bool)
+            if self.skip_opacity > 0 and evaluating:     # evaluation: empty rays skip the field
+                keep = (w_c.sum(-1) >= self.skip_opacity)[:, None].expand_as(t)
         self._hit_fraction = float(hit.float().mean())
-        return pack_samples(t, segment_ends(t, far), torch.ones_like(t, dtype=torch.bool))
+        self._fine_fraction = float((keep[:, 0] & hit).float().mean())
+        return pack_samples(t, segment_ends(t, far), keep)
 
     def stats(self) -> dict:
         """Evaluations per ray of the last batch, averaged over all rays: coarse (cache look-ups
-        or SDF calls) + fine, and fine alone, counting rays inside the box."""
-        return {"samples_per_ray": self._hit_fraction * (self.n_coarse + self.n_fine),
-                "fine_samples_per_ray": self._hit_fraction * self.n_fine}
+        or SDF calls) + fine, and fine alone, counting rays inside the box (and, in evaluation
+        renders, only those that kept their fine samples)."""
+        return {"samples_per_ray": self._hit_fraction * self.n_coarse + self._fine_fraction * self.n_fine,
+                "fine_samples_per_ray": self._fine_fraction * self.n_fine}
 
 
 def _coarse_weights(density, sdf: torch.Tensor, t: torch.Tensor, far: torch.Tensor, widen: torch.Tensor
