@@ -118,11 +118,26 @@ def test_gs_render_turntable_of_a_ply(compose, tmp_path):
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["n_gaussians"] == 200
 
 
+@pytest.mark.parametrize("min_left,expect_reset", [(0, True), (5, False)])
+def test_gs_train_skips_an_opacity_reset_too_close_to_the_end(compose, tmp_path, min_left, expect_reset):
+    """iters=26, a reset due at step 24: two steps are left, so a margin of 5 skips it (the
+    opacities stay near their 0.1 start) and a margin of 0 makes it (they end near 0.01)."""
+    torch.set_num_threads(1)
+    cfg = compose("task=gs_train", "iters=26", "eval_every=26", "data.image_size=24", "data.n_train=8",
+                  "data.n_test=1", "n_init=600", "strategy.start=1000", "strategy.opacity_reset_every=24",
+                  f"strategy.reset_min_steps_left={min_left}", "time_budget=0", "tensorboard=false",
+                  f"data.cache_dir={tmp_path / 'cache'}")
+    run_task(cfg, out_dir=tmp_path / "run")
+    g = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["trainable"]["modules"]["gaussians"]
+    mean_opacity = float(torch.sigmoid(g["opacity_logits"]).mean())
+    assert (mean_opacity < 0.03) if expect_reset else (mean_opacity > 0.06), mean_opacity
+
+
 def test_gs_train_resume_is_bitwise_identical(compose, tmp_path, monkeypatch):
     """N steps in one go == N/2 steps, interrupted, then resumed (density accumulators included)."""
     torch.set_num_threads(1)
     args = ("task=gs_train", "iters=36", "eval_every=18", "data.image_size=24", "data.n_train=8", "data.n_test=1",
-            "n_init=600", "strategy.start=6", "strategy.every=6", "strategy.opacity_reset_every=24", "sh_every=12",
+            "n_init=600", "strategy.start=6", "strategy.every=6", "strategy.opacity_reset_every=24", "strategy.reset_min_steps_left=0", "sh_every=12",
             "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
     run_task(compose(*args), out_dir=tmp_path / "full")
     monkeypatch.setenv("L3D_STOP_AT_STEP", "15")          # mid-way between two densifications

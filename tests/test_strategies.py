@@ -112,6 +112,23 @@ def test_default_opacity_reset_and_state_round_trip():
     torch.testing.assert_close(s2.grad_accum, torch.full((20,), 0.9))      # 3 steps x 0.3
 
 
+@pytest.mark.parametrize("steps_left,expect_reset", [(299, False), (300, True), (None, True)])
+def test_default_opacity_reset_skipped_near_the_end(steps_left, expect_reset):
+    """A reset due with fewer than reset_min_steps_left steps left would leave the run at its
+    reset opacities; it is skipped then, and made when enough steps remain or nobody says."""
+    m, opt = _model_and_adam()
+    m.opacity_logits.data[:] = 3.0
+    s = DefaultStrategy(start=100, every=50, opacity_reset_every=2, reset_min_steps_left=300)
+    s.initialize(m, opt, 1.0)
+    for step in range(2):
+        info = _info(torch.full((20,), 0.3), 20)
+        if steps_left is not None:
+            info["steps_left"] = steps_left
+        s.step_post_backward(m, opt, step, info)
+    expected = 0.01 if expect_reset else 1 / (1 + math.exp(-3.0))
+    torch.testing.assert_close(torch.sigmoid(m.opacity_logits), torch.full((20,), expected))
+
+
 def _relocation_reference(o: float, k: int):
     """The paper's eq. (9): o' = 1 - (1-o)^(1/k); s' = o / sum_{i=1..k} sum_{j<i} C(i-1,j) (-1)^j o'^(j+1)/sqrt(j+1)."""
     on = 1 - (1 - o) ** (1 / k)

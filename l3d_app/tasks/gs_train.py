@@ -108,7 +108,18 @@ def gs_train(cfg, ctx) -> dict:
         strategy.step_pre_backward(model, opt, step, info)
         return {"loss": loss, "l1": l1.detach(), "n_gaussians": torch.tensor(float(model.num))}
 
+    def steps_left(step: int) -> int:
+        """Steps after this one: to ``iters``, or fewer where the time budget (at the recent wall
+        seconds per step) ends the run sooner. The strategy skips an opacity reset near the end."""
+        left = int(cfg.iters) - (step + 1)
+        if float(cfg.time_budget) > 0 and step_times:
+            recent = [t for t, _ in step_times[-50:]]
+            seconds = float(cfg.time_budget) - float(cfg.reserve) - ctx.stopwatch.elapsed
+            left = min(left, int(seconds * len(recent) / max(sum(recent), 1e-9)))
+        return left
+
     def after_step(step: int) -> None:
+        info["steps_left"] = steps_left(step)
         logs = strategy.step_post_backward(model, opt, step, info, ctx.generator)
         if logs:
             ctx.logger.log_scalars({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
