@@ -1,5 +1,8 @@
 """l3d_app entry point: ``python main.py task=<name> key=value ...`` (Hydra)."""
 
+import os
+import sys
+
 import hydra
 from omegaconf import DictConfig
 
@@ -11,5 +14,22 @@ def main(cfg: DictConfig):
     return run(cfg)
 
 
+def cli() -> None:
+    """``main()`` with Hydra's own errors (a typo'd key, an unknown option of a config group, a
+    malformed override) reported like every other bad input: one line on stderr, exit status 2,
+    nothing written. ``L3D_DEBUG=1`` leaves them to Hydra's report."""
+    from hydra.errors import CompactHydraException
+
+    if os.environ.get("L3D_DEBUG", "").strip() in ("", "0"):
+        os.environ["HYDRA_FULL_ERROR"] = "1"   # Hydra raises instead of printing a report and exiting 1
+    try:
+        main()
+    except CompactHydraException as err:
+        from l3d_app.app import config_error_line
+
+        print(f"l3d_app: error: {config_error_line(err)}", file=sys.stderr)
+        sys.exit(2)
+
+
 if __name__ == "__main__":
-    main()
+    cli()

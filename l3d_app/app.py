@@ -65,6 +65,15 @@ def one_line(err: BaseException) -> str:
     return text if isinstance(err, UserError) else f"{text} ({type(err).__name__}; L3D_DEBUG=1 shows the traceback)"
 
 
+def config_error_line(err: BaseException) -> str:
+    """A Hydra composition error on one line: its message (an unknown group option's list of
+    available options included) and the first line of its cause (OmegaConf's reason)."""
+    message = str(err).split("Config search path:")[0]          # Hydra's search path: noise here
+    text = " ".join(line.strip() for line in message.splitlines() if line.strip()) or type(err).__name__
+    cause = str(err.__cause__ or "").strip().splitlines()
+    return f"{text} ({cause[0].strip()})" if cause else text
+
+
 def load_registries() -> None:
     """Import every package that registers something, so every registry is complete."""
     from l3d_app import data, diffusion, geometry, losses, models, render, strategies, tasks  # noqa: F401

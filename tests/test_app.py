@@ -84,10 +84,25 @@ def test_cli_multirun_writes_one_directory_per_job(tmp_path):
 ])
 def test_cli_bad_input_is_one_clear_line(tmp_path, args, needle):
     out = main_py(*args, "num_frames=2", "image_size=16", f"hydra.run.dir={tmp_path}")
-    assert out.returncode != 0
+    assert out.returncode == 2, out.stderr
     assert needle in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1, out.stderr
     assert "Traceback" not in out.stderr
     assert not (tmp_path / "metrics.json").exists()
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["task=gs_train", "gif_frames=0"], "gif_frames"),            # a key this task does not have
+    (["image_size==3"], "image_size==3"),                          # a malformed override
+    (["-m", "task=render360", "image_sise=16,24"], "image_sise"),  # a typo in a sweep
+])
+def test_cli_config_errors_are_one_line_exit_2(tmp_path, args, needle):
+    """Hydra's own errors (composition, override grammar) end like every other bad input."""
+    out = main_py(*args, f"hydra.run.dir={tmp_path / 'run'}", f"hydra.sweep.dir={tmp_path / 'sweep'}")
+    assert out.returncode == 2, out.stderr
+    assert needle in out.stderr and out.stderr.startswith("l3d_app: error:")
+    assert len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert not (tmp_path / "run").exists()
 
 
 def test_cli_malformed_obj_exits_2(tmp_path):
