@@ -12,9 +12,8 @@
 * density: VolSDF ``sigma = alpha * Psi_beta(-f)`` (:class:`~l3d_app.render.densities.LaplaceDensity`).
   ``beta`` is the initial value: ``beta_mode=anneal`` (default) takes it geometrically to
   ``beta_end`` over ``anneal_fraction`` of the steps, ``beta_mode=learnable`` trains it with
-  the field (floor ``beta_min``), ``beta_mode=fixed`` keeps it. ``alpha`` (default 1000, chosen
-  on val views) is fixed; ``alpha=null`` ties ``alpha = 1/beta`` (VolSDF). NeuS: ``density=neus``
-  with fixed ``s``.
+  the field (floor ``beta_min``), ``beta_mode=fixed`` keeps it. ``alpha=null`` (default) ties
+  ``alpha = 1/beta`` (VolSDF), a number fixes it. NeuS: ``density=neus`` with fixed ``s``.
   Why ``beta_end`` is small: a ray that passes a convex surface at distance ``h`` (curvature
   radius ``R``) accumulates optical depth ``exp(-h/beta) sqrt(pi R / (2 beta))`` (alpha = 1/beta),
   so silhouettes appear ``beta ln(sqrt(pi R / (2 beta)) / ln 2)`` OUTSIDE the zero level set and
