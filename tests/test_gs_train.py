@@ -137,8 +137,8 @@ def test_gs_train_resume_is_bitwise_identical(compose, tmp_path, monkeypatch):
     """N steps in one go == N/2 steps, interrupted, then resumed (density accumulators included)."""
     torch.set_num_threads(1)
     args = ("task=gs_train", "iters=36", "eval_every=18", "data.image_size=24", "data.n_train=8", "data.n_test=1",
-            "n_init=600", "strategy.start=6", "strategy.every=6", "strategy.opacity_reset_every=24", "strategy.reset_min_steps_left=0", "sh_every=12",
-            "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
+            "n_init=600", "strategy.start=6", "strategy.every=6", "strategy.opacity_reset_every=24",
+            "strategy.reset_min_steps_left=0", "sh_every=12", "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
     run_task(compose(*args), out_dir=tmp_path / "full")
     monkeypatch.setenv("L3D_STOP_AT_STEP", "15")          # mid-way between two densifications
     with pytest.raises(RunInterrupted):
