@@ -20,6 +20,12 @@ The development scene (``dev``) is the only scene any default may be tuned on; t
 are held out (``scene.json`` says which). Writes ``outputs/bench_scenes/results.json``, the
 markdown table and a plot of PSNR against seconds (``--doc``, default
 ``docs/benchmark_scenes.md`` + ``.png``).
+
+The table is a ledger: every row carries the commit it was measured at (``+dirty`` when the
+working tree had uncommitted changes), the date and the machine's load average at the end of
+the run, and is kept in ``docs/benchmark_scenes.json`` (next to ``--doc``). A call that runs
+some scenes or methods replaces those rows and keeps the others as they were measured, so a
+re-run of one method does not need the hours of the others (``--fresh`` drops the old rows).
 """
 
 from __future__ import annotations
@@ -47,8 +53,12 @@ def run_method(method: str, scene: Path, out: Path, threads: int, baseline_budge
                reuse: bool, overrides: List[str] = ()) -> Optional[dict]:
     """Run one task on one scene through main.py; returns its metrics.json (or None on failure)."""
     run_dir = out / scene.name / method
+    stamp_file = run_dir / "measured_at.json"
     if reuse and (run_dir / "metrics.json").is_file():
-        return json.loads((run_dir / "metrics.json").read_text())
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+        metrics["measured_at"] = json.loads(stamp_file.read_text()) if stamp_file.is_file() else {"commit": "unknown"}
+        return metrics
+    stamp = measured_at()                      # the code this run measures: taken before it starts
     cmd = [sys.executable, str(REPO / "main.py"), f"task={method}", "data=blender", f"data.root={scene}",
            "data.mesh_path=mesh.ply",
            f"threads={threads}", f"hydra.run.dir={run_dir}", *EXTRA.get(method, []), *overrides]
@@ -62,7 +72,33 @@ def run_method(method: str, scene: Path, out: Path, threads: int, baseline_budge
         return None
     metrics = json.loads((run_dir / "metrics.json").read_text())
     metrics.setdefault("wall_seconds", round(time.perf_counter() - t0, 1))
+    stamp["load"] = round(os.getloadavg()[0], 1)   # at the run's end
+    stamp_file.write_text(json.dumps(stamp))
+    metrics["measured_at"] = stamp
     return metrics
+
+
+def measured_at() -> Dict[str, object]:
+    """Where and when a row was measured: short commit (``+dirty`` with uncommitted changes),
+    UTC date, 1-minute load average."""
+    def git(*a):
+        return subprocess.run(["git", *a], cwd=REPO, capture_output=True, text=True).stdout.strip()
+    commit = git("rev-parse", "--short", "HEAD") or "unknown"
+    if git("status", "--porcelain", "--untracked-files=no", "--", "l3d_app", "conf", "main.py"):
+        commit += "+dirty"
+    return {"commit": commit, "date": time.strftime("%Y-%m-%d", time.gmtime()),
+            "load": round(os.getloadavg()[0], 1)}
+
+
+def merge_rows(old: List[dict], new: List[dict]) -> List[dict]:
+    """The ledger after a call: ``new`` rows replace ``old`` ones of the same (scene, method),
+    the rest of ``old`` is kept; sorted by scene (old order first) and METHODS order."""
+    key = lambda r: (r["scene"], r["method"])
+    fresh = {key(r): r for r in new}
+    rows = [fresh.pop(key(r), r) for r in old] + list(fresh.values())
+    scenes = list(dict.fromkeys(r["scene"] for r in old + new))
+    order = {m: i for i, m in enumerate(METHODS)}
+    return sorted(rows, key=lambda r: (scenes.index(r["scene"]), order.get(r["method"], len(order))))
 
 
 def find_mesh(run_dir: Path) -> Optional[Path]:
@@ -113,14 +149,16 @@ def fmt(v, spec: str) -> str:
 
 def table(rows: List[dict]) -> str:
     head = ("| scene | role | method | test PSNR | test SSIM | seconds | size | chamfer % diag (whole / observed) "
-            "| F1@0.02 obs | F1@0.05 obs | phantom % |\n|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+            "| F1@0.02 obs | F1@0.05 obs | phantom % | measured (commit, date, load) |\n"
+            "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     lines = [head]
     for r in rows:
         size = r.get("n_gaussians") or r.get("n_params")
         cham = "" if r.get("chamfer_pct") is None else f"{r['chamfer_pct']:.2f} / {r['chamfer_obs_pct']:.2f}"
         lines.append(f"| {r['scene']} | {r['role']} | {r['method']} | {fmt(r.get('psnr'), '.2f')} | "
                      f"{fmt(r.get('ssim'), '.3f')} | {fmt(r.get('seconds'), '.0f')} | {size or ''} | {cham} | "
-                     f"{fmt(r.get('f1_02_obs'), '.3f')} | {fmt(r.get('f1_05_obs'), '.3f')} | {fmt(r.get('phantom_pct'), '.1f')} |")
+                     f"{fmt(r.get('f1_02_obs'), '.3f')} | {fmt(r.get('f1_05_obs'), '.3f')} | {fmt(r.get('phantom_pct'), '.1f')} | "
+                     f"{r.get('commit', '?')}, {r.get('date', '?')}, {fmt(r.get('load'), '.1f') or '?'} |")
     return "\n".join(lines)
 
 
@@ -154,6 +192,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=REPO / "outputs" / "bench_scenes")
     ap.add_argument("--doc", type=Path, default=REPO / "docs" / "benchmark_scenes.md")
     ap.add_argument("--reuse", action="store_true", help="reuse finished runs in --out")
+    ap.add_argument("--fresh", action="store_true", help="start the ledger anew instead of merging "
+                    "into the rows of docs/benchmark_scenes.json")
     ap.add_argument("--override", nargs="*", default=[], help="extra overrides for every run (smoke tests only: "
                     "the benchmark's figures are the defaults)")
     args = ap.parse_args()
@@ -168,6 +208,7 @@ def main() -> None:
             m = run_method(method, scene, args.out, args.threads, args.baseline_budget, args.reuse, args.override)
             row = {"scene": scene.name, "role": info["role"], "method": method}
             if m is not None:
+                row.update(m["measured_at"])
                 row.update({k: m.get(k) for k in ("psnr", "ssim", "seconds", "n_params", "n_gaussians", "iters")})
                 mesh = find_mesh(args.out / scene.name / method)
                 if mesh is not None:
@@ -176,10 +217,15 @@ def main() -> None:
             print(table([row]).splitlines()[-1], flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(rows, indent=1))
-    load = os.getloadavg()
+    ledger = args.doc.with_suffix(".json")
+    if not args.fresh and ledger.is_file():
+        rows = merge_rows(json.loads(ledger.read_text()), rows)
+    ledger.parent.mkdir(parents=True, exist_ok=True)
+    ledger.write_text(json.dumps(rows, indent=1) + "\n")
     cmd = "python bench/bench_scenes.py " + " ".join(sys.argv[1:])
-    section = (f"{BEGIN}\n`{cmd.strip()}`\n\n"
-               f"Machine: {os.cpu_count()} cores, load average at the end {load[0]:.1f}. Targets on held-out scenes: "
+    section = (f"{BEGIN}\nLast call: `{cmd.strip()}` ({os.cpu_count()} cores). Each row says the commit, date and "
+               f"load average of its own run; rows not re-run by a call are kept from `{ledger.name}`. "
+               "Targets on held-out scenes: "
                + "; ".join(f"{k}: {v}" for k, v in TARGETS.items()) + ".\n\n" + table(rows) + f"\n{END}")
     write_section(args.doc, section)
     plot(rows, args.doc.with_suffix(".png"))

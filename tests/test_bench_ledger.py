@@ -1,0 +1,46 @@
+"""The held-out benchmark's ledger (bench/bench_scenes.py): a call that re-runs some
+(scene, method) pairs replaces exactly those rows and keeps the others with their own
+commit, date and load, so a table never mixes figures without saying where each came from."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("bench_scenes", REPO / "bench" / "bench_scenes.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _row(scene, method, psnr, commit):
+    return {"scene": scene, "role": "held out", "method": method, "psnr": psnr, "commit": commit,
+            "date": "2026-11-25", "load": 1.0}
+
+
+def test_merge_replaces_only_the_rows_that_were_run_and_keeps_the_order():
+    bench = _bench()
+    old = [_row("thin", "train_nerf", 36.0, "aaa"), _row("thin", "volsdf", 18.0, "aaa"),
+           _row("above", "gs_train", 37.0, "bbb"), _row("above", "volsdf", 28.0, "bbb")]
+    new = [_row("above", "volsdf", 30.5, "ccc"), _row("thin", "volsdf", 25.0, "ccc"),
+           _row("dev", "volsdf", 33.0, "ccc")]
+    rows = bench.merge_rows(old, new)
+    got = [(r["scene"], r["method"], r["psnr"], r["commit"]) for r in rows]
+    assert got == [("thin", "train_nerf", 36.0, "aaa"), ("thin", "volsdf", 25.0, "ccc"),
+                   ("above", "gs_train", 37.0, "bbb"), ("above", "volsdf", 30.5, "ccc"),
+                   ("dev", "volsdf", 33.0, "ccc")]
+    assert bench.merge_rows([], new) == sorted(new, key=lambda r: ["above", "thin", "dev"].index(r["scene"]))
+
+
+def test_table_names_each_rows_commit_and_the_committed_ledger_is_complete():
+    bench = _bench()
+    line = bench.table([_row("thin", "volsdf", 25.0, "ccc")]).splitlines()[-1]
+    assert line.startswith("| thin | held out | volsdf | 25.00 |") and line.endswith("| ccc, 2026-11-25, 1.0 |")
+    ledger = json.loads((REPO / "docs" / "benchmark_scenes.json").read_text())
+    assert all(r.get("commit") and r.get("date") for r in ledger)
+    doc = (REPO / "docs" / "benchmark_scenes.md").read_text()
+    for r in ledger:                       # the markdown table is the ledger, row for row
+        assert bench.table([r]).splitlines()[-1] in doc
