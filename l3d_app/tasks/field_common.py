@@ -7,8 +7,10 @@ from typing import Dict, Tuple
 import torch
 
 from l3d_app.geometry.cameras import Cameras
+from l3d_app.geometry.mesh import Mesh
 from l3d_app.metrics.image import psnr, ssim
 from l3d_app.render.evaluation import RenderFn, evaluation_picture, render_views
+from l3d_app.render.mesh_visibility import cull_unseen_faces
 from l3d_app.runtime.media import save_png
 
 
@@ -66,3 +68,15 @@ def evals_after_training(n_eval_views: int, n_test_views: int, frames: int = 0, 
     pixels = image_hw[0] * image_hw[1] * supersample ** 2
     after = n_test_views * pixels + frames * frame_size ** 2
     return after / max(1, n_eval_views * pixels)
+
+
+def cull_to_training_views(mesh: Mesh, data, box, resolution: int) -> Tuple[Mesh, float]:
+    """The extracted ``mesh`` without the faces no TRAINING camera sees (the leftover of the
+    initialisation below a plate seen from above, surfaces inside objects) and the share of
+    its area removed. The depth tolerance is two marching-cubes cells of the ``box``
+    ((2, 3) or nested lists) at ``resolution``: the grid's own precision, not a tuned value."""
+    lo, hi = torch.as_tensor(box, dtype=torch.float64)
+    tolerance = 2.0 * float((hi - lo).max()) / int(resolution)
+    cams = data.cameras[data.train.to(data.cameras.device)]
+    return cull_unseen_faces(mesh, cams, tolerance)
+

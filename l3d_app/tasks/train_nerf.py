@@ -12,7 +12,8 @@ after training (``psnr``, ``ssim`` in metrics.json; ``val_*`` the last validatio
 ``time_budget`` > 0: wall seconds for the whole task, ``reserve`` of them kept for the test
 evaluation and the artefacts. Outputs: ``turntable.gif`` (colour | depth, orbiting the data's
 up axis), ``test_views.png``, ``metrics.json``; ``extract_mesh=true`` adds ``mesh.<fmt>`` of
-``density = mesh_threshold`` coloured by the field.
+``density = mesh_threshold`` coloured by the field (with ``mesh_cull``: only the faces some
+training camera sees; the whole level set in ``mesh_uncut.ply``).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from l3d_app.runtime.precision import maybe_compile
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import background_parameter, require_positive
-from l3d_app.tasks.field_common import BeforeAfter, evaluate_views, evals_after_training
+from l3d_app.tasks.field_common import BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training
 
 
 @TASKS.register("train_nerf")
@@ -124,6 +125,10 @@ def train_nerf(cfg, ctx) -> dict:
             if mesh is None:
                 ctx.logger.text("mesh", "no mesh written: the density never reaches mesh_threshold in the box")
             else:
+                if bool(cfg.mesh_cull):      # what no training camera sees: free space, not a leftover
+                    save_field_mesh(mesh, ctx.path("mesh_uncut"), ["ply"])
+                    mesh, metrics["mesh_culled_area"] = cull_to_training_views(mesh, data, box,
+                                                                               int(cfg.mesh_resolution))
                 save_field_mesh(mesh, ctx.path("mesh"), list(cfg.mesh_formats))
             metrics["mesh_faces"] = 0 if mesh is None else int(mesh.num_faces)
     metrics.update({**{k: v for k, v in result.val_metrics().items() if k in ("val_psnr", "val_ssim")},

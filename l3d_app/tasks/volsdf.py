@@ -45,7 +45,9 @@ bounding-box diagonal, ``f1`` / ``precision`` / ``recall`` at ``f1_threshold`` (
 predicted surface nearest to it), ``observed_fraction`` its share of the true area.
 Outputs: ``render.gif`` (360 colour | depth) and ``geometry.gif`` (sphere-traced shading of the SDF),
 both orbiting the data's up axis; ``mesh.<fmt>`` (``mesh_formats``, vertex colours from the colour
-network looking along -normal); ``test_views.png``; ``metrics.json``.
+network looking along -normal; with ``mesh_cull`` only the faces some training camera sees, the
+whole level set in ``mesh_uncut.ply``, ``mesh_culled_area`` the share of area removed; the
+surface scores are of the culled mesh); ``test_views.png``; ``metrics.json``.
 """
 
 from __future__ import annotations
@@ -74,7 +76,7 @@ from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import background_parameter, require_positive
-from l3d_app.tasks.field_common import BeforeAfter, evaluate_views, evals_after_training
+from l3d_app.tasks.field_common import BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training
 
 
 @TASKS.register("volsdf")
@@ -228,8 +230,12 @@ def _surface_metrics(cfg, ctx, model, field_fn, box, data) -> Dict[str, float]:
     if mesh is None:      # empty level set: say so, keep the other results
         ctx.logger.text("mesh", "no mesh written: the SDF has no zero level set in the box")
         return {"mesh_faces": 0}
+    out: Dict[str, float] = {}
+    if bool(cfg.mesh_cull):              # what no training camera sees: free space, not a leftover
+        save_field_mesh(mesh, ctx.path("mesh_uncut"), ["ply"])
+        mesh, out["mesh_culled_area"] = cull_to_training_views(mesh, data, box, int(cfg.mesh_resolution))
     save_field_mesh(mesh, ctx.path("mesh"), list(cfg.mesh_formats))
-    out: Dict[str, float] = {"mesh_faces": int(mesh.num_faces)}
+    out["mesh_faces"] = int(mesh.num_faces)
     truth = _ground_truth(cfg, data)
     if truth is not None:
         cams = data.cameras[data.train.to(data.cameras.device)].to("cpu")
