@@ -27,9 +27,10 @@ def observed_mask(points: torch.Tensor, cameras: Cameras, depth_maps: torch.Tens
     Args:
         points: (N, 3) world points.
         cameras: B cameras (at their own resolution; ``depth_maps`` may be finer).
-        depth_maps: (B, h, w) camera Z of the true surface, +inf where empty
+        depth_maps: (B, h, w) camera Z of the occluding surface (the true one for the metrics,
+            the mesh itself for culling), +inf where empty
             (:func:`l3d_app.render.rgbd.true_depth_maps`; h / H = w / W = the scale).
-        tolerance: world units a point may lie behind the true depth and still count.
+        tolerance: world units a point may lie behind that depth and still count.
         normals: optional (N, 3) outward normals of the points' surface: a camera then
             counts only if the surface faces it (``n . (C - p) > 0``).
     """
