@@ -39,6 +39,8 @@ def test_table_names_each_rows_commit_and_the_committed_ledger_is_complete():
     bench = _bench()
     line = bench.table([_row("thin", "volsdf", 25.0, "ccc")]).splitlines()[-1]
     assert line.startswith("| thin | held out | volsdf | 25.00 |") and line.endswith("| ccc, 2026-11-25, 1.0 |")
+    copied = {**_row("thin", "gs_train", 38.0, "ddd"), "load": 2.0, "transcribed_from_table": True}
+    assert bench.table([copied]).splitlines()[-1].endswith("| ddd, 2026-11-25, about 2.0 (from the older table) |")
     ledger = json.loads((REPO / "docs" / "benchmark_scenes.json").read_text())
     assert all(r.get("commit") and r.get("date") for r in ledger)
     doc = (REPO / "docs" / "benchmark_scenes.md").read_text()
