@@ -153,8 +153,9 @@ class VolSDFDensity(LaplaceDensity):
         self.mode, self.beta_start, self.beta_end = mode, float(beta), float(beta_end)
         self.anneal_fraction = float(anneal_fraction)
 
-    def schedule(self, step: int, iters: int) -> None:
-        """``anneal``: ``beta = beta_start (beta_end / beta_start)^p``, ``p = min(1, step / (fraction iters))``."""
+    def schedule(self, step: float, iters: int) -> None:
+        """``anneal``: ``beta = beta_start (beta_end / beta_start)^p``, ``p = min(1, step / (fraction iters))``
+        (``step`` may be fractional: a time-budgeted run's nominal step, ``Horizon.nominal``)."""
         if self.mode != "anneal":
             return
         p = min(1.0, step / max(1.0, self.anneal_fraction * int(iters)))

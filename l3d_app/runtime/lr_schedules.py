@@ -22,3 +22,21 @@ def warmup_cosine(warmup: int, decay_start: int, decay_end: int, final_ratio: fl
         return min(warm, final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * p)))
 
     return factor
+
+
+def step_decay(decay: float, every: int) -> Callable[[float], float]:
+    """Factor ``decay ** floor(i / every)`` (``torch.optim.lr_scheduler.StepLR``'s closed form)."""
+    decay, every = float(decay), max(1, int(every))
+    return lambda i: decay ** math.floor(i / every)
+
+
+def exponential(final_factor: float, iters: int) -> Callable[[float], float]:
+    """Factor ``final_factor ** (i / iters)``: 1 at step 0, ``final_factor`` at ``iters``."""
+    final, n = float(final_factor), max(1, int(iters))
+    return lambda i: final ** (min(float(i), n) / n)
+
+
+def on_horizon(factor: Callable[[float], float], horizon) -> Callable[[int], float]:
+    """``factor`` read at :meth:`~l3d_app.runtime.horizon.Horizon.nominal` of the step: the
+    whole schedule within the steps a time budget leaves (unchanged when it does not bind)."""
+    return lambda i: factor(horizon.nominal(i))

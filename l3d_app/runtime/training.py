@@ -15,7 +15,9 @@ optimiser and LR schedulers) and two callbacks, and gets, for free:
   tag -> (H, W, 3) in [0, 1]) are logged as ``val/<tag>``;
 * a time budget: with ``time_budget`` > 0 (seconds of the task's wall time, measured by
   ``ctx.stopwatch``) the loop stops early enough that the final validation and the
-  ``reserve`` seconds the task needs afterwards (test evaluation, artefacts) still fit;
+  ``reserve`` seconds the task needs afterwards (test evaluation, artefacts) still fit,
+  and keeps a task's :class:`~l3d_app.runtime.horizon.Horizon` (``horizon=``) at the step
+  it expects to stop at, so schedules that read it end with the run;
 * a NaN/Inf guard: a non-finite loss or gradient skips the step (nothing is applied) and
   is logged; after ``max_bad_steps`` consecutive failures the last good state is restored;
 * checkpoints (``checkpoint.pt``, written atomically, never with non-finite parameters)
@@ -42,6 +44,7 @@ from typing import Any, Callable, Dict, Iterator, List, Optional
 import torch
 
 from l3d_app.runtime.files import atomic_path
+from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.precision import autocast
 from l3d_app.runtime.progress import progress
 
@@ -187,7 +190,8 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
           max_bad_steps: int = 5, desc: str = "train", log_every: int = 10,
           after_step: Optional[Callable[[int], None]] = None,
           time_budget: Optional[float] = None, reserve: Optional[float] = None,
-          reserve_evals: float = 0.0) -> TrainResult:
+          reserve_evals: float = 0.0, horizon: Optional[Horizon] = None,
+          eval_seconds: Optional[float] = None) -> TrainResult:
     """Run ``iters`` optimisation steps.
 
     Args:
@@ -214,6 +218,13 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
             as timed in this run (e.g. 20 test views + 36 turntable frames after 4-view
             evaluations: 14): what follows the loop is mostly rendering, whose cost the loop
             measures, so the budget holds on any machine and image size.
+        horizon: a :class:`~l3d_app.runtime.horizon.Horizon` the loop updates after every
+            step with its prediction of the last step the budget lets it run (periodic
+            evaluations, the final one, ``reserve_evals`` and ``reserve`` included), so the
+            task's schedules can end where the run ends. Untouched without a budget.
+        eval_seconds: one validation evaluation's wall seconds, timed by the task before the
+            loop (e.g. its "before" picture): the budget's first predictions then include
+            the evaluations instead of learning their cost at the first ``eval_every``.
 
     ``step_fn`` runs under ``autocast(ctx.precision, ctx.device)`` (the ``precision=`` knob:
     ``fp32`` does nothing, ``bf16`` autocasts the forward); backward and the optimiser step
@@ -240,6 +251,8 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
         reserve = getattr(ctx, "reserve", 0.0)
     clock = _LoopClock(float(time_budget or 0.0), float(reserve or 0.0), float(reserve_evals or 0.0),
                        now=lambda: ctx.stopwatch.elapsed)
+    if eval_seconds is not None and eval_fn is not None:
+        clock.eval_seconds, clock.evals = float(eval_seconds), 1
     precision = getattr(ctx, "precision", "fp32")
     with stop.installed():
         bar = progress(range(start, iters), desc=desc, total=iters, initial=start)
@@ -290,6 +303,9 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                 stop.signal = signal.SIGINT  # test hook: behave as if interrupted here
             if stop.signal is not None:
                 break
+            if horizon is not None and clock.budget > 0:
+                horizon.update(done, clock.predicted_steps(ctx.stopwatch.elapsed, done, eval_fn is not None,
+                                                           eval_every))
             if done < iters and clock.out_of_time(ctx.stopwatch.elapsed, eval_fn is not None):
                 clock.budget_stop = True
                 ctx.logger.text("train/budget", f"time budget {time_budget:g} s: stopped at step {done}")
@@ -339,6 +355,17 @@ class _LoopClock:
         final_eval = self.eval_seconds / self.evals if (has_eval and self.evals) else 0.0
         step = self.train_seconds / max(1, self.steps)
         return elapsed + step + final_eval * (1.0 + self.reserve_evals) + self.reserve >= self.budget
+
+    def predicted_steps(self, elapsed: float, done: int, has_eval: bool, eval_every: int) -> float:
+        """The step count the budget allows: ``done`` plus the seconds left after the final
+        validation and the reserve, over a step's seconds (its mean so far) plus its share of
+        the periodic evaluations (their mean cost / ``eval_every``)."""
+        final_eval = self.eval_seconds / self.evals if (has_eval and self.evals) else 0.0
+        per_step = self.train_seconds / max(1, self.steps)
+        if has_eval and eval_every:
+            per_step += final_eval / int(eval_every)
+        left = self.budget - elapsed - final_eval * (1.0 + self.reserve_evals) - self.reserve
+        return done + max(0.0, left) / max(per_step, 1e-9)
 
 
 def _evaluate(ctx, eval_fn, step: int, history: Dict[str, Any]) -> Dict[str, float]:

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Dict, Tuple
+import time
+from typing import Dict, Optional, Tuple
 
 import torch
 
@@ -37,15 +38,19 @@ class BeforeAfter:
     update, no random draw: the run's stream is untouched) and logs ``val/before_training``;
     ``after(picture)`` keeps each evaluation's picture; ``save(ctx)`` writes
     ``before_after.png`` (before above, last evaluation below) and returns ``{"before_val_psnr"}``.
+    ``seconds``: the "before" evaluation's wall time (None until it ran), for ``train(eval_seconds=)``.
     """
 
     def __init__(self):
         self.pictures: Dict[str, torch.Tensor] = {}
         self.before_psnr = float("nan")
+        self.seconds: Optional[float] = None
 
     def before(self, ctx, evaluate_fn) -> None:
+        t0 = time.perf_counter()
         with torch.no_grad():
             metrics, self.pictures["before"], _ = evaluate_fn()
+        self.seconds = time.perf_counter() - t0
         self.before_psnr = float(metrics["psnr"])
         ctx.logger.image("val/before_training", self.pictures["before"], 0)
 

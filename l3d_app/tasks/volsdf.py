@@ -35,7 +35,10 @@
 Evaluation: every ``eval_every`` steps on the VALIDATION views (PSNR / SSIM and a
 ``pred | truth | error | depth`` picture in TensorBoard); the TEST views are rendered once at the
 end (``psnr``, ``ssim``; ``val_*`` the last validation). ``time_budget`` > 0: wall seconds
-for the whole task, ``reserve`` of them kept for the test evaluation, mesh and gifs. A marching-cubes mesh of the SDF's zero level set, scored
+for the whole task, ``reserve`` of them kept for the mesh and its scores (the test views and gifs
+are reserved from the measured evaluation time); when the budget stops training before ``iters``,
+the LR, beta anneal and level schedules follow the loop's prediction of its last step
+(:class:`~l3d_app.runtime.horizon.Horizon`), so the run still ends annealed. A marching-cubes mesh of the SDF's zero level set, scored
 against the ground-truth surface when the data carries one (``data.mesh``; the built-in scene) by
 :func:`~l3d_app.metrics.surface_scores.surface_scores`: ``chamfer`` = mean accuracy + mean
 completeness, EXACT point-to-mesh distances of ``eval_points`` samples of each surface
@@ -72,6 +75,7 @@ from l3d_app.render.sdf_volume import render_sdf_rays
 from l3d_app.render.sphere_tracing import render_sdf_shaded
 from l3d_app.render.turntable import color_depth_frames, data_up, orbit_cameras, write_turntable
 from l3d_app.runtime.media import save_png
+from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
@@ -96,9 +100,10 @@ def volsdf(cfg, ctx) -> dict:
     background = background_parameter(cfg.learn_background, data)  # learnt for real captures
     groups = [{"params": list(model.parameters()) + ([background["rgb"]] if background["rgb"].requires_grad else [])},
               {"params": list(dens.parameters()), "lr": float(cfg.lr_beta)}]
-    opt, scheds = build_optimizer(cfg.optim, groups, int(cfg.iters))
+    horizon = Horizon(int(cfg.iters))     # where a time budget will stop the run: the schedules end there
+    opt, scheds = build_optimizer(cfg.optim, groups, int(cfg.iters), horizon=horizon)
     trainable = Trainable({"field": model, "density": dens, "background": background}, opt,
-                          extra={"sampler": sampler}, schedulers=scheds)
+                          extra={"sampler": sampler, "horizon": horizon}, schedulers=scheds)
 
     origins, dirs = camera_rays(data.cameras, normalize=False)                # (N, H, W, 3), camera Z = 1
     tr = data.train.to(ctx.device)
@@ -119,8 +124,9 @@ def volsdf(cfg, ctx) -> dict:
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
         stats["_t0"], stats["_c0"] = time.perf_counter(), time.process_time()
-        levels.apply(step)
-        dens.schedule(step, int(cfg.iters))
+        nominal = horizon.nominal(step)      # = step unless the time budget binds
+        levels.apply(int(nominal))
+        dens.schedule(nominal, int(cfg.iters))
         sampler.update(step, model, ctx.generator)
         idx = randint(0, n_rays, (batch,), ctx.generator, ctx.device)
         d = flat_d[idx]
@@ -176,7 +182,8 @@ def volsdf(cfg, ctx) -> dict:
                        time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
                        reserve_evals=evals_after_training(   # test views, then render.gif + geometry.gif
                            len(val), len(data.test), 2 * int(cfg.gif_frames),
-                           int(cfg.turntable_size) or data.cameras.width, data.image_size, int(cfg.supersample)))
+                           int(cfg.turntable_size) or data.cameras.width, data.image_size, int(cfg.supersample)),
+                       horizon=horizon, eval_seconds=before_after.seconds)
     model.eval()
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator, force=True)

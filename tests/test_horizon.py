@@ -1,0 +1,113 @@
+"""A time-budgeted run's horizon: the loop predicts the step the budget stops it at, and the
+schedules that read the prediction end there. A fake clock (steps 1 s, a 10 s validation every
+20 steps) makes the stop step a matter of arithmetic; the LR factors are checked against
+torch's own schedulers, built independently."""
+
+import math
+import types
+
+import pytest
+import torch
+
+from l3d_app.runtime import training
+from l3d_app.runtime.context import RunContext
+from l3d_app.runtime.horizon import Horizon
+from l3d_app.runtime.logger import RunLogger
+from l3d_app.runtime.lr_schedules import exponential, on_horizon, step_decay, warmup_cosine
+from l3d_app.runtime.optim import build_optimizer
+from l3d_app.runtime.seed import seed_everything
+
+
+def test_nominal_step_compresses_the_schedule_into_the_predicted_steps():
+    h = Horizon(1000)
+    assert h.nominal(250) == 250                 # no prediction yet: the schedule is read by step
+    h.update(done=10, predicted=400.0)
+    assert h.nominal(200) == pytest.approx(500.0) and h.nominal(400) == pytest.approx(1000.0)
+    h.update(done=10, predicted=5000.0)          # never past iters ...
+    assert h.steps == 1000
+    h.update(done=300, predicted=12.0)           # ... nor before the steps already done
+    assert h.steps == 301
+    g = Horizon(7)
+    g.load_state_dict(h.state_dict())
+    assert (g.iters, g.steps) == (1000, 301)
+
+
+@pytest.mark.parametrize("name,factor,reference", [
+    ("step", step_decay(0.33, 7), lambda opt: torch.optim.lr_scheduler.StepLR(opt, 7, 0.33)),
+    ("exp", exponential(0.01, 40), lambda opt: torch.optim.lr_scheduler.ExponentialLR(opt, 0.01 ** (1 / 40))),
+    ("cos", warmup_cosine(0, 0, 40, 0.05),
+     lambda opt: torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=40, eta_min=0.1 * 0.05)),
+])
+def test_factor_schedules_match_torchs_schedulers(name, factor, reference):
+    p = torch.nn.Parameter(torch.zeros(1))
+    ours = torch.optim.SGD([p], lr=0.1)
+    ref = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=0.1)
+    sched, ref_sched = torch.optim.lr_scheduler.LambdaLR(ours, factor), reference(ref)
+    for _ in range(40):
+        assert ours.param_groups[0]["lr"] == pytest.approx(ref.param_groups[0]["lr"], rel=1e-9)
+        ours.step(), ref.step(), sched.step(), ref_sched.step()
+
+
+def test_on_horizon_reads_the_factor_at_the_nominal_step():
+    h = Horizon(100)
+    h.update(done=0, predicted=50.0)
+    f = on_horizon(warmup_cosine(0, 0, 100, 0.05), h)
+    assert f(50) == pytest.approx(0.05) and f(25) == pytest.approx(0.05 + 0.95 * 0.5)
+
+
+def run_budgeted(tmp_path, monkeypatch, with_horizon: bool):
+    """Budget 300 s, reserve 10 s, 3 evaluations' worth of rendering after the loop; steps
+    1 s, a 10 s validation after every 20th step (its cost known up front). The loop stops
+    at the first k with k + 10 floor(k / 20) + 1 + 10 (1 + 3) + 10 >= 300: k = 169."""
+    clock = types.SimpleNamespace(elapsed=0.0)
+    monkeypatch.setattr(training, "time", types.SimpleNamespace(perf_counter=lambda: clock.elapsed))
+    ctx = RunContext(out_dir=tmp_path, device=torch.device("cpu"), generator=seed_everything(0),
+                     logger=RunLogger(tmp_path, enabled=False), stopwatch=clock,
+                     time_budget=300.0, reserve=10.0)
+    model = torch.nn.Linear(2, 1)
+    horizon = Horizon(1000)
+    opt, scheds = build_optimizer({"name": "warmup_cosine", "lr": 0.1, "warmup_steps": 5, "final_ratio": 0.05},
+                                  model.parameters(), 1000, horizon=horizon if with_horizon else None)
+    trainable = training.Trainable({"model": model}, opt, schedulers=scheds)
+    seen = {"lr": [], "steps": []}
+
+    def step_fn(i):
+        clock.elapsed += 1.0
+        seen["lr"].append(opt.param_groups[0]["lr"])
+        seen["steps"].append(horizon.steps)
+        return {"loss": model(torch.ones(1, 2)).pow(2).sum()}
+
+    def eval_fn(step):
+        clock.elapsed += 10.0
+        return {"x": 0.0}
+    result = training.train(ctx, trainable, step_fn, iters=1000, eval_fn=eval_fn, eval_every=20,
+                             reserve_evals=3.0, horizon=horizon if with_horizon else None, eval_seconds=10.0)
+    return result, seen
+
+
+def test_the_horizon_predicts_the_budget_stop_and_the_schedule_ends_there(tmp_path, monkeypatch):
+    result, seen = run_budgeted(tmp_path, monkeypatch, with_horizon=True)
+    assert result.budget_stop and result.step == 169
+    # from the first step on, the prediction is within 3% of where the run stops: it spreads
+    # the validations over the steps (1.5 s each), so it reads 166.7 after each one and up
+    # to 173.3 just before the next: (300 - 10 (1 + 3) - 10) / 1.5 = 166.7 at the start
+    assert all(abs(s - 169) <= 0.03 * 169 for s in seen["steps"][1:])
+    # the LR reached its final ratio (0.05) at the last step, where an uncompressed cosine
+    # over 1000 steps would still be near its top
+    assert seen["lr"][-1] <= 0.1 * (0.05 + 0.01)
+    plain_result, plain = run_budgeted(tmp_path / "plain", monkeypatch, with_horizon=False)
+    assert plain_result.step == 169
+    expected = 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * (168 - 5) / 995))
+    assert plain["lr"][-1] == pytest.approx(0.1 * expected) and plain["lr"][-1] > 0.09
+
+
+def test_without_a_budget_the_horizon_stays_at_iters(tmp_path):
+    ctx = RunContext(out_dir=tmp_path, device=torch.device("cpu"), generator=seed_everything(0),
+                     logger=RunLogger(tmp_path, enabled=False), time_budget=0.0)
+    model = torch.nn.Linear(2, 1)
+    horizon = Horizon(30)
+    opt, scheds = build_optimizer({"name": "warmup_cosine", "lr": 0.1, "warmup_steps": 0, "final_ratio": 0.05},
+                                  model.parameters(), 30, horizon=horizon)
+    training.train(ctx, training.Trainable({"model": model}, opt, schedulers=scheds),
+                   lambda i: {"loss": model(torch.ones(1, 2)).pow(2).sum()}, iters=30, horizon=horizon)
+    assert horizon.steps == 30 and opt.param_groups[0]["lr"] == pytest.approx(0.1 * 0.05)
