@@ -190,8 +190,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
           max_bad_steps: int = 5, desc: str = "train", log_every: int = 10,
           after_step: Optional[Callable[[int], None]] = None,
           time_budget: Optional[float] = None, reserve: Optional[float] = None,
-          reserve_evals: float = 0.0, horizon: Optional[Horizon] = None,
-          eval_seconds: Optional[float] = None) -> TrainResult:
+          reserve_evals: float = 0.0, horizon: Optional[Horizon] = None) -> TrainResult:
     """Run ``iters`` optimisation steps.
 
     Args:
@@ -222,9 +221,6 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
             step with its prediction of the last step the budget lets it run (periodic
             evaluations, the final one, ``reserve_evals`` and ``reserve`` included), so the
             task's schedules can end where the run ends. Untouched without a budget.
-        eval_seconds: one validation evaluation's wall seconds, timed by the task before the
-            loop (e.g. its "before" picture): the budget's first predictions then include
-            the evaluations instead of learning their cost at the first ``eval_every``.
 
     ``step_fn`` runs under ``autocast(ctx.precision, ctx.device)`` (the ``precision=`` knob:
     ``fp32`` does nothing, ``bf16`` autocasts the forward); backward and the optimiser step
@@ -251,8 +247,6 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
         reserve = getattr(ctx, "reserve", 0.0)
     clock = _LoopClock(float(time_budget or 0.0), float(reserve or 0.0), float(reserve_evals or 0.0),
                        now=lambda: ctx.stopwatch.elapsed)
-    if eval_seconds is not None and eval_fn is not None:
-        clock.eval_seconds, clock.evals = float(eval_seconds), 1
     precision = getattr(ctx, "precision", "fp32")
     with stop.installed():
         bar = progress(range(start, iters), desc=desc, total=iters, initial=start)

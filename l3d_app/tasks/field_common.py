@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import time
-from typing import Dict, Optional, Tuple
+from typing import Dict, Tuple
 
 import torch
 
@@ -38,19 +37,15 @@ class BeforeAfter:
     update, no random draw: the run's stream is untouched) and logs ``val/before_training``;
     ``after(picture)`` keeps each evaluation's picture; ``save(ctx)`` writes
     ``before_after.png`` (before above, last evaluation below) and returns ``{"before_val_psnr"}``.
-    ``seconds``: the "before" evaluation's wall time (None until it ran), for ``train(eval_seconds=)``.
     """
 
     def __init__(self):
         self.pictures: Dict[str, torch.Tensor] = {}
         self.before_psnr = float("nan")
-        self.seconds: Optional[float] = None
 
     def before(self, ctx, evaluate_fn) -> None:
-        t0 = time.perf_counter()
         with torch.no_grad():
             metrics, self.pictures["before"], _ = evaluate_fn()
-        self.seconds = time.perf_counter() - t0
         self.before_psnr = float(metrics["psnr"])
         ctx.logger.image("val/before_training", self.pictures["before"], 0)
 

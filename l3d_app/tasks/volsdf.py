@@ -183,7 +183,7 @@ def volsdf(cfg, ctx) -> dict:
                        reserve_evals=evals_after_training(   # test views, then render.gif + geometry.gif
                            len(val), len(data.test), 2 * int(cfg.gif_frames),
                            int(cfg.turntable_size) or data.cameras.width, data.image_size, int(cfg.supersample)),
-                       horizon=horizon, eval_seconds=before_after.seconds)
+                       horizon=horizon)
     model.eval()
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator, force=True)
