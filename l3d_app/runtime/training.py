@@ -341,12 +341,16 @@ class _LoopClock:
         self.evals += 1
         return out
 
+    def mean_eval(self, has_eval: bool) -> float:
+        """Seconds of one validation as timed so far in the loop (0 before the first)."""
+        return self.eval_seconds / self.evals if (has_eval and self.evals) else 0.0
+
     def out_of_time(self, elapsed: float, has_eval: bool) -> bool:
         """True when one more step plus the final validation and the reserve (seconds + evaluations'
         worth of rendering) would pass the budget."""
         if self.budget <= 0:
             return False
-        final_eval = self.eval_seconds / self.evals if (has_eval and self.evals) else 0.0
+        final_eval = self.mean_eval(has_eval)
         step = self.train_seconds / max(1, self.steps)
         return elapsed + step + final_eval * (1.0 + self.reserve_evals) + self.reserve >= self.budget
 
@@ -354,7 +358,7 @@ class _LoopClock:
         """The step count the budget allows: ``done`` plus the seconds left after the final
         validation and the reserve, over a step's seconds (its mean so far) plus its share of
         the periodic evaluations (their mean cost / ``eval_every``)."""
-        final_eval = self.eval_seconds / self.evals if (has_eval and self.evals) else 0.0
+        final_eval = self.mean_eval(has_eval)
         per_step = self.train_seconds / max(1, self.steps)
         if has_eval and eval_every:
             per_step += final_eval / int(eval_every)
