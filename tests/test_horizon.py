@@ -113,3 +113,24 @@ def test_without_a_budget_the_horizon_stays_at_iters(tmp_path):
     training.train(ctx, training.Trainable({"model": model}, opt, schedulers=scheds),
                    lambda i: {"loss": model(torch.ones(1, 2)).pow(2).sum()}, iters=30, horizon=horizon)
     assert horizon.steps == 30 and opt.param_groups[0]["lr"] == pytest.approx(0.1 * 0.05)
+
+
+def test_a_checkpoint_of_the_older_torch_schedulers_resumes_into_the_factor_schedule():
+    # before the schedules were LambdaLR factors, adam_step saved a StepLR state: resuming it
+    # must carry the step count over (lr 0.1 x 0.33 after 12 steps of decay_every 10), not fail
+    def built():
+        model = torch.nn.Linear(2, 1)
+        opt = torch.optim.Adam(model.parameters(), lr=0.1)
+        return model, opt
+    model, opt = built()
+    old = torch.optim.lr_scheduler.StepLR(opt, step_size=10, gamma=0.33)
+    for _ in range(12):
+        opt.step(), old.step()
+    state = training.Trainable({"m": model}, opt, schedulers=[old]).state_dict()
+    model2 = torch.nn.Linear(2, 1)
+    opt2, scheds = build_optimizer({"name": "adam_step", "lr": 0.1, "decay": 0.33, "decay_every": 10},
+                                   model2.parameters(), 100)
+    training.Trainable({"m": model2}, opt2, schedulers=scheds).load_state_dict(state)
+    assert scheds[0].last_epoch == 12 and opt2.param_groups[0]["lr"] == pytest.approx(0.1 * 0.33)
+    opt2.step(), scheds[0].step()
+    assert opt2.param_groups[0]["lr"] == pytest.approx(0.1 * 0.33)

@@ -80,6 +80,10 @@ class Trainable:
             m.load_state_dict(state["modules"][k])
         self.optimizer.load_state_dict(state["optimizer"])
         for sched, sd in zip(self.schedulers, state.get("schedulers", [])):
+            if isinstance(sched, torch.optim.lr_scheduler.LambdaLR) and "lr_lambdas" not in sd:
+                # a checkpoint from before the schedules were LambdaLR factors (StepLR, ...): the
+                # factor is a closed form of the step, so the step count is all that carries over
+                sd = {**sd, "lr_lambdas": [None] * len(sched.lr_lambdas)}
             sched.load_state_dict(sd)
         for k, v in state.get("extra", {}).items():
             if k in self.extra and hasattr(self.extra[k], "load_state_dict"):
