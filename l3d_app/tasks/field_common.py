@@ -59,6 +59,17 @@ class BeforeAfter:
         return {}
 
 
+def turntable_width(cfg, data_width: int) -> int:
+    """Turntable frame width in pixels: ``cfg.turntable_size`` when set, else the data's
+    ``data_width`` capped at ``cfg.turntable_max`` (a task's optional key; 0 or absent: no cap).
+    The cap keeps a preview of 256-800 px data from costing more than the test views."""
+    size = int(cfg.turntable_size)
+    if size:
+        return size
+    cap = int(cfg.get("turntable_max", 0) or 0)
+    return min(int(data_width), cap) if cap > 0 else int(data_width)
+
+
 def evals_after_training(n_eval_views: int, n_test_views: int, frames: int = 0, frame_size: int = 0,
                          image_hw: Tuple[int, int] = (1, 1), supersample: int = 1) -> float:
     """The rendering a field task does after its training loop (the test views, then

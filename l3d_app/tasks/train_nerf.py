@@ -34,7 +34,8 @@ from l3d_app.runtime.precision import maybe_compile
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import background_parameter, require_positive
-from l3d_app.tasks.field_common import BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training
+from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
+                                        turntable_width)
 
 
 @TASKS.register("train_nerf")
@@ -106,7 +107,7 @@ def train_nerf(cfg, ctx) -> dict:
                        time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
                        reserve_evals=evals_after_training(
                            len(val), len(data.test), int(cfg.gif_frames),
-                           int(cfg.turntable_size) or data.cameras.width, data.image_size))
+                           turntable_width(cfg, data.cameras.width), data.image_size))
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator)
         test, picture, _ = evaluate(data.test)                                  # the one test evaluation
@@ -117,7 +118,7 @@ def train_nerf(cfg, ctx) -> dict:
         if int(cfg.gif_frames) > 0:
             cams = orbit_cameras(int(cfg.gif_frames), float(data.cameras.centers().norm(dim=-1).mean()),
                                  float(cfg.gif_elevation), float(data.cameras.fov()[0]),
-                                 int(cfg.turntable_size) or data.cameras.width, up=data_up(data), device=ctx.device)
+                                 turntable_width(cfg, data.cameras.width), up=data_up(data), device=ctx.device)
             write_turntable(ctx.path("turntable.gif"), color_depth_frames(render_fn, int(cfg.chunk)), cams, cfg.fps)
         if bool(cfg.extract_mesh):
             mesh = extract_mesh(lambda p: -model.density(p), box, int(cfg.mesh_resolution), -float(cfg.mesh_threshold),

@@ -80,7 +80,8 @@ from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import background_parameter, require_positive
-from l3d_app.tasks.field_common import BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training
+from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
+                                        turntable_width)
 
 
 @TASKS.register("volsdf")
@@ -182,7 +183,7 @@ def volsdf(cfg, ctx) -> dict:
                        time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
                        reserve_evals=evals_after_training(   # test views, then render.gif + geometry.gif
                            len(val), len(data.test), 2 * int(cfg.gif_frames),
-                           int(cfg.turntable_size) or data.cameras.width, data.image_size, int(cfg.supersample)),
+                           turntable_width(cfg, data.cameras.width), data.image_size, int(cfg.supersample)),
                        horizon=horizon)
     model.eval()
     with torch.no_grad():
@@ -258,7 +259,7 @@ def _turntables(cfg, ctx, model, render, data, box) -> None:
     """render.gif (colour | depth) and geometry.gif (sphere-traced SDF shading) about the data's up axis."""
     cams = orbit_cameras(int(cfg.gif_frames), float(data.cameras.centers().norm(dim=-1).mean()),
                          float(cfg.gif_elevation), float(data.cameras.fov()[0]),
-                         int(cfg.turntable_size) or data.cameras.width, up=data_up(data), device=ctx.device)
+                         turntable_width(cfg, data.cameras.width), up=data_up(data), device=ctx.device)
     write_turntable(ctx.path("render.gif"), color_depth_frames(render, int(cfg.chunk)), cams, cfg.fps)
     shade = lambda o, d: {"color": render_sdf_shaded(model.sdf, o, d, box)}  # noqa: E731
     write_turntable(ctx.path("geometry.gif"), lambda c: render_views(shade, c, int(cfg.chunk))["color"], cams, cfg.fps)
