@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Dict, Tuple
+from typing import Dict, Optional, Tuple
 
 import torch
 
@@ -71,14 +71,17 @@ def turntable_width(cfg, data_width: int) -> int:
 
 
 def evals_after_training(n_eval_views: int, n_test_views: int, frames: int = 0, frame_size: int = 0,
-                         image_hw: Tuple[int, int] = (1, 1), supersample: int = 1) -> float:
-    """The rendering a field task does after its training loop (the test views, then
-    ``frames`` turntable frames of ``frame_size``^2 pixels), in units of one validation
-    evaluation (``n_eval_views`` views of ``image_hw`` at ``supersample``^2 rays per pixel);
-    the loop turns it into seconds with its own timing (``train(reserve_evals=...)``)."""
-    pixels = image_hw[0] * image_hw[1] * supersample ** 2
-    after = n_test_views * pixels + frames * frame_size ** 2
-    return after / max(1, n_eval_views * pixels)
+                         image_hw: Tuple[int, int] = (1, 1), supersample: int = 1,
+                         val_supersample: Optional[int] = None) -> float:
+    """The rendering a field task does after its training loop (the test views of ``image_hw``
+    at ``supersample``^2 rays per pixel, then ``frames`` turntable frames of ``frame_size``^2
+    pixels at one ray each), in units of one validation evaluation (``n_eval_views`` views of
+    ``image_hw`` at ``val_supersample``^2 rays per pixel; None: ``supersample``); the loop
+    turns it into seconds with its own timing (``train(reserve_evals=...)``)."""
+    val_ss = supersample if val_supersample is None else int(val_supersample)
+    view = image_hw[0] * image_hw[1]
+    after = n_test_views * view * supersample ** 2 + frames * frame_size ** 2
+    return after / max(1, n_eval_views * view * val_ss ** 2)
 
 
 def cull_to_training_views(mesh: Mesh, data, box, resolution: int) -> Tuple[Mesh, float]:

@@ -87,7 +87,7 @@ from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, eva
 @TASKS.register("volsdf")
 def volsdf(cfg, ctx) -> dict:
     """Train on the train views, validate on val, test once; surface scores, gifs, mesh, metrics."""
-    require_positive(cfg, "iters", "batch_rays", "chunk", "supersample", "eval_every")
+    require_positive(cfg, "iters", "batch_rays", "chunk", "supersample", "val_supersample", "eval_every")
     data = DATASETS.build(cfg.data).to(ctx.device)
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
@@ -157,20 +157,20 @@ def volsdf(cfg, ctx) -> dict:
         stats["cpu_seconds"] += time.process_time() - stats.pop("_c0", time.process_time())
         stats["steps"] += 1
 
-    def evaluate(views: torch.Tensor):
+    def evaluate(views: torch.Tensor, supersample: int):
         views = views.to(ctx.device)
         with torch.no_grad():   # a fresh SDF cache (step -1: not a training step; the schedule goes on)
             sampler.update(-1, model, ctx.generator, force=True)   # evaluation renders skip the rays it calls empty
-        return evaluate_views(render, data.cameras[views], data.images[views], int(cfg.chunk), int(cfg.supersample))
+        return evaluate_views(render, data.cameras[views], data.images[views], int(cfg.chunk), supersample)
 
     val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val
 
     before_after = BeforeAfter()
     if len(val) and bool(cfg.before_after) and not (bool(cfg.resume) and ctx.path("checkpoint.pt").exists()):
-        before_after.before(ctx, lambda: evaluate(val))
+        before_after.before(ctx, lambda: evaluate(val, int(cfg.val_supersample)))
 
     def eval_fn(step: int) -> Dict[str, float]:
-        metrics, picture, _ = evaluate(val)
+        metrics, picture, _ = evaluate(val, int(cfg.val_supersample))
         before_after.after(picture)
         return {**metrics, **dens.stats(), "samples_per_ray": stats["samples_per_ray"],
                 "train_seconds": stats["train_seconds"], "cpu_seconds": stats["cpu_seconds"],
@@ -183,12 +183,13 @@ def volsdf(cfg, ctx) -> dict:
                        time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
                        reserve_evals=evals_after_training(   # test views, then render.gif + geometry.gif
                            len(val), len(data.test), 2 * int(cfg.gif_frames),
-                           turntable_width(cfg, data.cameras.width), data.image_size, int(cfg.supersample)),
+                           turntable_width(cfg, data.cameras.width), data.image_size, int(cfg.supersample),
+                           int(cfg.val_supersample)),
                        horizon=horizon)
     model.eval()
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator, force=True)
-        test, picture, _ = evaluate(data.test)                                  # the one test evaluation
+        test, picture, _ = evaluate(data.test, int(cfg.supersample))             # the one test evaluation
         log_test(ctx, test, result.step, images={"views": picture})
         save_png(ctx.path("test_views.png"), picture)
     metrics = {k: round(v, 4) for k, v in test.items()}
