@@ -47,7 +47,7 @@ DEFAULT_SCENES = Path(os.environ.get("L3D_BENCH_SCENES", REPO / "outputs" / ".ca
 METHODS = ("train_nerf", "gs_train", "volsdf", "nerf_baseline")
 EXTRA = {"train_nerf": ["extract_mesh=true"],
          # the in-run baseline: test PSNR at a fixed budget, no turntable. Its evaluation is slow (128
-         # samples per ray, no empty-space skipping: about 20 s per 128 px view on 2 cores), so the loop
+         # samples per ray, no empty-space skipping: 15-18 s per 128 px view on 2 cores), so the loop
          # must learn that cost early to keep the test views inside the budget: one validation view
          # every 25 steps and no 'before' picture (set before any baseline row was read)
          "nerf_baseline": ["gif_frames=0", "before_after=false", "eval_every=25", "eval_views=1"]}
