@@ -28,6 +28,7 @@ import torch
 # checks it); re-exported here, where it has always been imported from.
 from l3d_app.prompt_vocab import (ANY, BACKGROUND_NAMES, BACKGROUNDS, COLOUR_NAMES,  # noqa: E402,F401
                                   COLOURS, SHAPES, parse_prompt, prompt_text)
+from l3d_app.runtime.random import rand, randint  # noqa: E402
 
 
 def _palette(table: dict) -> torch.Tensor:
@@ -56,9 +57,8 @@ def shape_masks(shape: torch.Tensor, centre: torch.Tensor, radius: torch.Tensor,
 
 def sample_labels(n: int, generator: Optional[torch.Generator] = None, device="cpu") -> torch.Tensor:
     """(n, 3) random (colour, shape, background) indices, uniform over the vocabulary."""
-    kw = dict(generator=generator, device=device)
-    return torch.stack([torch.randint(len(COLOURS), (n,), **kw), torch.randint(len(SHAPES), (n,), **kw),
-                        torch.randint(len(BACKGROUNDS), (n,), **kw)], dim=1)
+    return torch.stack([randint(0, len(COLOURS), (n,), generator, device), randint(0, len(SHAPES), (n,), generator, device),
+                        randint(0, len(BACKGROUNDS), (n,), generator, device)], dim=1)
 
 
 def render_prompt_images(labels: torch.Tensor, size: int = 32, generator: Optional[torch.Generator] = None,
@@ -71,10 +71,9 @@ def render_prompt_images(labels: torch.Tensor, size: int = 32, generator: Option
     """
     device = labels.device
     B = labels.shape[0]
-    kw = dict(generator=generator, device=device)
-    rand = sample_labels(B, generator, device)
-    labels = torch.where(labels == ANY, rand, labels)
-    u = torch.rand(B, 9, **kw)
+    drawn = sample_labels(B, generator, device)
+    labels = torch.where(labels == ANY, drawn, labels)
+    u = rand((B, 9), generator, device)
     radius = (min_radius + (max_radius - min_radius) * u[:, 0]) * size
     centre = size / 2 + (2 * u[:, 1:3] - 1) * max_offset * size
     fg = _palette(COLOURS).to(device)[labels[:, 0]] + jitter * (2 * u[:, 3:6] - 1)

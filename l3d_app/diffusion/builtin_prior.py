@@ -30,6 +30,7 @@ from l3d_app.diffusion.schedule import alphas_cumprod
 from l3d_app.diffusion.unet import TinyUNet
 from l3d_app.errors import UserError
 from l3d_app.runtime.files import atomic_path
+from l3d_app.runtime.random import rand, randint, randn
 from l3d_app.runtime.paths import resolve_path
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "assets" / "builtin_prior.pt"
@@ -123,11 +124,11 @@ class BuiltinPrior(DiffusionPrior):
         dev = images.device
         with torch.no_grad():
             x0 = self.encode(images)
-        drop = torch.rand(B, 3, generator=generator, device=dev) < slot_drop
-        drop |= torch.rand(B, 1, generator=generator, device=dev) < all_drop
+        drop = rand((B, 3), generator, dev) < slot_drop
+        drop |= rand((B, 1), generator, dev) < all_drop
         labels = torch.where(drop, torch.full_like(labels, ANY), labels)
-        t = torch.randint(0, self.num_timesteps, (B,), generator=generator, device=dev)
-        noise = torch.randn(x0.shape, generator=generator, device=dev)
+        t = randint(0, self.num_timesteps, (B,), generator, dev)
+        noise = randn(x0.shape, generator, dev)
         out = self.unet(self.add_noise(x0, t, noise), t, self.embed_labels(labels))
         if self.config["prediction"] == "eps":
             target = noise

@@ -8,6 +8,7 @@ import torch
 
 from l3d_app.diffusion.prior import DiffusionPrior, PromptEmbedding
 from l3d_app.diffusion.guidance import guided_noise
+from l3d_app.runtime.random import randn
 
 
 @torch.no_grad()
@@ -20,8 +21,7 @@ def ddim_sample(prior: DiffusionPrior, prompts: Sequence[str], steps: int = 25, 
     B = len(prompts)
     embs = [prior.embed_prompt(p) for p in prompts]
     emb = PromptEmbedding(torch.cat([e.cond for e in embs]), torch.cat([e.uncond for e in embs]))
-    gen_device = generator.device if generator is not None else device
-    x = torch.randn((B, *prior.latent_shape), generator=generator, device=gen_device).to(device)
+    x = randn((B, *prior.latent_shape), generator, device)
     times = torch.linspace(T - 1, 0, int(steps), device=device).round().long()
     for i, t in enumerate(times):
         eps = guided_noise(prior, x, t.repeat(B), emb, guidance_scale)

@@ -24,6 +24,7 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.textures import sample_texture
+from l3d_app.runtime.random import rand
 
 # Faces with area <= _REL_DEGENERATE * (largest face area) count as degenerate: this only
 # absorbs round-off in the cross product of (nearly) collinear edges.
@@ -47,7 +48,7 @@ class SurfaceSamples(NamedTuple):
 def uniform_barycentrics(num_samples: int, generator: Optional[torch.Generator] = None,
                          device=None, dtype=torch.float32) -> torch.Tensor:
     """(S, 3) barycentric weights uniformly distributed over a triangle (square-root trick)."""
-    r = torch.rand(num_samples, 2, generator=generator, device=device, dtype=dtype)
+    r = rand((num_samples, 2), generator, device, dtype)
     s = r[:, 0].sqrt()
     return torch.stack([1 - s, s * (1 - r[:, 1]), s * r[:, 1]], dim=-1)
 
@@ -91,7 +92,9 @@ def sample_surface(mesh: Mesh, num_samples: int,
     if num_samples == 0:
         face_index = torch.zeros(0, dtype=torch.long, device=device)
     else:
-        face_index = torch.multinomial(weights, num_samples, replacement=True, generator=generator)
+        draw_on = generator.device if generator is not None else device   # the run's generator is a CPU one
+        face_index = torch.multinomial(weights.to(draw_on), num_samples, replacement=True,
+                                       generator=generator).to(device)
     bary = uniform_barycentrics(num_samples, generator, device=device, dtype=mesh.verts.dtype)
     fv = mesh.verts[mesh.faces[face_index]]  # (S, 3, 3): gather keeps the graph to verts
     points = (bary.unsqueeze(-1) * fv).sum(dim=1)

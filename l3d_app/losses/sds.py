@@ -30,6 +30,8 @@ from dataclasses import dataclass
 from typing import Optional, Tuple
 
 import torch
+
+from l3d_app.runtime.random import randint, randn
 import torch.nn.functional as F
 
 from l3d_app.diffusion.guidance import guided_noise  # noqa: F401  (re-exported: older imports)
@@ -102,12 +104,10 @@ def sds_loss(prior: DiffusionPrior, x: torch.Tensor, embedding: PromptEmbedding,
     device = x.device
     if t is None:
         lo, hi = timestep_range(prior.num_timesteps, t_min, t_max)
-        gen_device = generator.device if generator is not None else device
-        t = torch.randint(lo, hi + 1, (B,), generator=generator, device=gen_device).to(device)
+        t = randint(lo, hi + 1, (B,), generator, device)
     t = t.to(device=device, dtype=torch.long)
     if noise is None:
-        gen_device = generator.device if generator is not None else device
-        noise = torch.randn(x.shape, generator=generator, device=gen_device).to(device)
+        noise = randn(x.shape, generator, device)
     x0 = x.detach().float()
     noise = noise.to(device=device, dtype=torch.float32)
     with torch.no_grad():

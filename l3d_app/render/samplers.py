@@ -13,6 +13,8 @@ from typing import Optional, Sequence, Tuple, Union
 
 import torch
 
+from l3d_app.runtime.random import rand
+
 Bound = Union[float, torch.Tensor]
 
 
@@ -60,7 +62,7 @@ def stratified_samples(near: Bound, far: Bound, n_samples: int, n_rays: Optional
         mids = 0.5 * (t[:, 1:] + t[:, :-1])
         lower = torch.cat([t[:, :1], mids], dim=-1)
         upper = torch.cat([mids, t[:, -1:]], dim=-1)
-        u = torch.rand(t.shape, dtype=dtype, device=device, generator=generator)
+        u = rand(t.shape, generator, device, dtype)
         t = lower + (upper - lower) * u
     return t
 
@@ -98,7 +100,7 @@ def sample_pdf(edges: torch.Tensor, weights: torch.Tensor, n_samples: int, pertu
     cdf[:, -1] = 1.0
     k = torch.arange(n_samples, dtype=dt, device=dev).expand(n_rays, n_samples)
     if perturb:
-        u = (k + torch.rand(k.shape, dtype=dt, device=dev, generator=generator)) / n_samples
+        u = (k + rand(k.shape, generator, dev, dt)) / n_samples
     else:
         u = (k + 0.5) / n_samples
     u = u.contiguous()

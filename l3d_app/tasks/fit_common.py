@@ -35,7 +35,7 @@ def eval_generator(cfg, device, split: str = "test", stream: int = 0) -> torch.G
     if split not in ("val", "test"):
         raise ValueError(f"split must be 'val' or 'test', not {split!r}")
     offset = int(cfg.eval_seed_offset) + 2 * int(stream) + (1 if split == "val" else 0)
-    return torch.Generator(device=device).manual_seed(int(cfg.seed) + offset)
+    return torch.Generator(device="cpu").manual_seed(int(cfg.seed) + offset)   # CPU: the same draws on any device
 
 
 def held_out_surface(mesh: Mesh, n: int, cfg, device) -> Dict[str, torch.Tensor]:

@@ -20,14 +20,15 @@ from l3d_app.geometry.sampling import sample_points_on_mesh
 from l3d_app.metrics.chamfer import chamfer_distance
 from l3d_app.metrics.fscore import fscore
 from l3d_app.registry import TASKS
+from l3d_app.runtime.random import rand, randn
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.fit_common import check_fit_knobs, held_out_surface, load_target_mesh, side_by_side_turntable
 
 
 def random_ball(n: int, radius: float, generator: torch.Generator, device=None) -> torch.Tensor:
     """(n, 3) points uniform in a ball of ``radius`` (world units) around the origin."""
-    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=generator, device=device), dim=-1)
-    r = radius * torch.rand(n, 1, generator=generator, device=device).pow(1.0 / 3.0)
+    d = torch.nn.functional.normalize(randn((n, 3), generator, device), dim=-1)
+    r = radius * rand((n, 1), generator, device).pow(1.0 / 3.0)
     return d * r
 
 

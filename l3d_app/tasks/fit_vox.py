@@ -17,6 +17,7 @@ from l3d_app.geometry.marching_cubes import padded_bounds
 from l3d_app.geometry.voxels import occupancy_to_mesh, voxelize_mesh
 from l3d_app.metrics.iou import iou
 from l3d_app.registry import LOSSES, TASKS
+from l3d_app.runtime.random import randn
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.fit_common import check_fit_knobs, load_target_mesh, side_by_side_turntable
 
@@ -34,7 +35,7 @@ def fit_vox(cfg, ctx) -> dict:
     if not bool(target.any()):
         raise UserError("the target mesh occupies no voxel (is it closed? try a larger voxel_size)")
     target_f = target.float()
-    logits = torch.nn.Parameter(torch.randn(R, R, R, generator=ctx.generator, device=ctx.device))
+    logits = torch.nn.Parameter(randn((R, R, R), ctx.generator, ctx.device))
     holder = torch.nn.ParameterDict({"logits": logits})
     trainable = Trainable({"voxels": holder}, torch.optim.Adam(holder.parameters(), lr=float(cfg.lr)))
     loss_fn = LOSSES.build(cfg.loss)

@@ -102,7 +102,7 @@ def train_prior(cfg, ctx) -> dict:
             else:
                 if i == ae_iters or float(lat.latent_scale) == 1.0:
                     with torch.no_grad():
-                        ref_gen = torch.Generator(dev).manual_seed(int(cfg.latent_scale_seed))
+                        ref_gen = torch.Generator("cpu").manual_seed(int(cfg.latent_scale_seed))
                         ref, _ = prompt_batch(int(cfg.latent_scale_batch), S, ref_gen, dev)
                         lat.latent_scale.fill_(1.0 / float(lat.autoencoder.encode(ref).std()))
                 logs["latent"] = lat.diffusion_loss(images, labels, gen, float(cfg.slot_drop), float(cfg.all_drop))
@@ -122,7 +122,7 @@ def train_prior(cfg, ctx) -> dict:
         """DDIM samples from the split's own noise: val = seed + eval_seed_offset + 1 (every
         evaluation), test = seed + eval_seed_offset (once, at the end)."""
         out = {}
-        g = torch.Generator(dev).manual_seed(int(cfg.seed) + int(cfg.eval_seed_offset) + (split == "val"))
+        g = torch.Generator("cpu").manual_seed(int(cfg.seed) + int(cfg.eval_seed_offset) + (split == "val"))  # same draws on any device
         for s in spaces:
             if s == "latent" and _i <= ae_iters:
                 continue
