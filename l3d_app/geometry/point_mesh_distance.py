@@ -10,11 +10,15 @@ and barycentrics to compare colours at the closest surface point.
 How (:func:`point_mesh_distance`): a k-d tree over the face centroids (scipy) gives each
 point its nearest centroid; that face's exact point-triangle distance ``u`` is an upper
 bound. A face can only be closer than ``u`` if its centroid lies within ``u + r_f`` (``r_f``
-= the face's centroid-to-vertex radius), so the tree's ball query (radius ``u + max r``)
-lists the candidates, the per-face test prunes them, and only those (point, face) pairs
-are evaluated exactly (:func:`closest_point_barycentrics`) in float64 and reduced with a
-scatter-min. The result is exact (up to float64 rounding); the pruning only skips faces
-that cannot win. Ties between faces go to the lowest face index.
+= the face's centroid-to-vertex radius). The faces are grouped by size (``r_f`` within a
+factor of two), one tree per group, and each group's ball query (radius ``u + max r`` of
+the group) lists the candidates: a few large faces in a finely tessellated mesh (a
+32-triangle tray on a 160k-triangle slab) then widen only their own group's query, not
+every face's (one global ``max r`` listed ~20k candidates per point there and ran out of
+24 GB). The per-face test prunes them, and only those (point, face) pairs are evaluated
+exactly (:func:`closest_point_barycentrics`) in float64 and reduced with a scatter-min.
+The result is exact (up to float64 rounding); the pruning only skips faces that cannot
+win. Ties between faces go to the lowest face index.
 
 This is the only point-to-mesh distance of the library (metrics use it too).
 """
@@ -109,6 +113,7 @@ def point_mesh_distance(points: torch.Tensor, mesh: Mesh) -> MeshDistance:
     centroid = tri.mean(dim=1)                                                       # (F, 3)
     radius = (tri - centroid[:, None]).norm(dim=-1).amax(dim=1)                      # (F,)
     tree = cKDTree(centroid.numpy())
+    groups = _size_groups(centroid, radius)
     workers = max(1, torch.get_num_threads())
     dist = torch.empty(pts.shape[0], dtype=torch.float64)
     face = torch.empty(pts.shape[0], dtype=torch.long)
@@ -118,12 +123,7 @@ def point_mesh_distance(points: torch.Tensor, mesh: Mesh) -> MeshDistance:
         first = torch.from_numpy(np.asarray(first, dtype=np.int64))
         f0 = tri[first]
         upper = point_triangle_distance(p, f0[:, 0], f0[:, 1], f0[:, 2])             # (C,)
-        reach = (upper + radius.max()).numpy() + 1e-12
-        balls = tree.query_ball_point(p.numpy(), reach, workers=workers)
-        counts = torch.from_numpy(tree.query_ball_point(p.numpy(), reach, workers=workers,
-                                                        return_length=True).astype(np.int64))
-        rows = torch.repeat_interleave(torch.arange(p.shape[0]), counts)
-        cols = torch.from_numpy(np.concatenate(balls).astype(np.int64)) if rows.numel() else rows
+        rows, cols = _candidates(p, upper, groups, workers)
         keep = (p[rows] - centroid[cols]).norm(dim=-1) - radius[cols] <= upper[rows] + 1e-12
         rows, cols = rows[keep], cols[keep]
         pair_d = torch.cat([point_triangle_distance(p[rows[k:k + _PAIR_CHUNK]], *tri[cols[k:k + _PAIR_CHUNK]].unbind(1))
@@ -140,3 +140,34 @@ def point_mesh_distance(points: torch.Tensor, mesh: Mesh) -> MeshDistance:
     dtype = points.dtype if points.is_floating_point() else torch.float64
     return MeshDistance(dist.to(device=points.device, dtype=dtype), face.to(points.device),
                         bary.to(device=points.device, dtype=dtype))
+
+
+def _size_groups(centroid: torch.Tensor, radius: torch.Tensor):
+    """Faces grouped by size (radius within a factor of two): [(tree, face ids, max radius)]."""
+    from scipy.spatial import cKDTree
+
+    size_class = torch.floor(torch.log2(radius.clamp_min(1e-30))).long()
+    groups = []
+    for c in torch.unique(size_class).tolist():
+        ids = torch.nonzero(size_class == c).squeeze(1)
+        groups.append((cKDTree(centroid[ids].numpy()), ids, float(radius[ids].max())))
+    return groups
+
+
+def _candidates(p: torch.Tensor, upper: torch.Tensor, groups, workers: int):
+    """(point row, face id) pairs whose face centroid lies within ``upper + max r`` of the
+    point, the ``max r`` of the face's own size group (a superset of the faces that can win)."""
+    rows, cols = [], []
+    for tree, ids, r_max in groups:
+        reach = (upper + r_max).numpy() + 1e-12
+        balls = tree.query_ball_point(p.numpy(), reach, workers=workers)
+        counts = torch.from_numpy(tree.query_ball_point(p.numpy(), reach, workers=workers,
+                                                        return_length=True).astype(np.int64))
+        if int(counts.sum()) == 0:
+            continue
+        rows.append(torch.repeat_interleave(torch.arange(p.shape[0]), counts))
+        cols.append(ids[torch.from_numpy(np.concatenate(balls).astype(np.int64))])
+    if not rows:
+        empty = torch.zeros(0, dtype=torch.long)
+        return empty, empty
+    return torch.cat(rows), torch.cat(cols)
