@@ -18,6 +18,7 @@ field of view, as in NeRF-synthetic):
 name        size  what it tests                                               role
 ==========  ====  ==========================================================  ===============
 dev         128   spheres, a box and a cylinder, diffuse + glossy, all round  DEVELOPMENT
+ground      128   striped slab, open tray, chequered cylinder; from above     DEVELOPMENT
 thin        128   a lamp: thin pole (r 0.03), thin ring, flat base            held out
 concave     128   a thick-walled bowl and an open cup, seen into from above   held out
 texture     128   stripes and checks on flat slabs and a cube (1/16 periods)  held out
@@ -33,7 +34,8 @@ objects use ``roughplastic`` (alpha 0.1). Images are linear radiance to sRGB, st
 mesh's silhouette drawn by our own rasteriser through the written cameras (IoU per split):
 it tests the camera conversion, not the renderer.
 
-The development scene is the only one any default may be chosen on. The held-out scenes
+The development scenes (``dev``, and ``ground`` since 2026-11-26) are the only ones any
+default may be chosen on. The held-out scenes
 took no part in any choice (see ``docs/benchmark_scenes.md``).
 """
 
@@ -133,6 +135,21 @@ def scene_dev():
     return [("glossy", sphere), ("diffuse", box), ("diffuse", cyl)]
 
 
+def scene_ground():
+    """Development scene 2: what `dev` (solved) does not show. A striped ground slab seen only
+    from above (its underside and the space below are never observed), a square open tray
+    (concave) and a chequered cylinder: texture on flat and curved geometry. None of these
+    objects, colours or periods is used by a held-out scene."""
+    t = _trimesh().creation
+    slab = _colour(_fine(_place(t.box((2.0, 2.0, 0.06)), (0, 0, -0.55)), 0.02),
+                   _stripes(0, 1.0 / 12.0, (0.85, 0.8, 0.7), (0.25, 0.2, 0.45)))
+    tray_profile = np.array([[0.0, -0.52], [0.42, -0.52], [0.42, -0.22], [0.35, -0.22], [0.35, -0.47], [0.0, -0.47]])
+    tray = _colour(_place(_revolve(tray_profile, sections=4), (-0.45, 0.4, 0.0)), _solid((0.55, 0.25, 0.6)))
+    cyl = _colour(_fine(_place(t.cylinder(radius=0.22, height=0.55, sections=64), (0.45, 0.1, -0.245)), 0.015),
+                  _checks(0.1, (0.95, 0.55, 0.1), (0.1, 0.35, 0.3)))
+    return [("diffuse", slab), ("diffuse", tray), ("glossy", cyl)]
+
+
 def scene_thin():
     t = _trimesh().creation
     base = _colour(_fine(_place(t.cylinder(radius=0.55, height=0.06, sections=64), (0, 0, -0.9)), 0.05), _solid((0.3, 0.3, 0.35)))
@@ -184,6 +201,8 @@ def scene_around():
 SCENES: Dict[str, dict] = {
     "dev": dict(build=scene_dev, size=128, elev=(-30.0, 75.0), role="development",
                 tests="mixed primitives, diffuse and glossy, seen from all round"),
+    "ground": dict(build=scene_ground, size=128, elev=(10.0, 80.0), role="development",
+                   tests="second development scene: a striped ground slab seen from above, a tray, a chequered cylinder"),
     "thin": dict(build=scene_thin, size=128, elev=(-30.0, 75.0), role="held out",
                  tests="thin structures: a pole of radius 0.03, a thin ring"),
     "concave": dict(build=scene_concave, size=128, elev=(5.0, 80.0), role="held out",

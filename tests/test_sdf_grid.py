@@ -265,3 +265,22 @@ def test_grazing_rays_are_as_opaque_as_the_exact_integral(radius, beta):
     assert float(head_on.min()) > 0.99
     with pytest.raises(ValueError):
         SDFCacheProposal(box, max_segment=0.0)
+
+
+def test_colour_grid_feeds_colour_only():
+    """``color_grid_levels`` > 0: the appearance grid changes the colour, never the SDF or its
+    gradient (no gradient path from the SDF into it), and the colour's gradient reaches it."""
+    field = _random_field(color_grid_levels=3, color_grid_max_resolution=64, color_grid_log2_hashmap_size=12)
+    x = torch.rand(100, 3, dtype=D) * 1.8 - 0.9
+    dirs = torch.nn.functional.normalize(torch.randn(100, 3, dtype=D), dim=-1)
+    f0, rgb0, g0 = field.sdf_rgb_grad(x, dirs)
+    with torch.no_grad():
+        field.color_encoding.table.uniform_(-0.5, 0.5)
+    f1, rgb1, g1 = field.sdf_rgb_grad(x, dirs)
+    torch.testing.assert_close(f1, f0, rtol=0, atol=0)
+    torch.testing.assert_close(g1, g0, rtol=0, atol=0)
+    assert (rgb1 - rgb0).abs().max() > 1e-3
+    assert torch.autograd.grad(f1.sum() + g1.sum(), field.color_encoding.table, allow_unused=True)[0] is None
+    (gc,) = torch.autograd.grad(rgb1.sum(), field.color_encoding.table)
+    assert gc.abs().sum() > 0
+    assert _random_field().color_encoding is None          # off by default: the colour MLP's input unchanged

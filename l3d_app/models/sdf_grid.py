@@ -22,7 +22,9 @@ Neuralangelo recipe in pure PyTorch:
 * **Coarse-to-fine**: only the first ``active_levels`` grid levels feed the MLP (the others
   are multiplied by 0); the task raises it during training (Neuralangelo's progressive levels).
 * **Colour** ``rgb = sigmoid(MLP([x, n, d, features]))`` with the unit normal ``n = grad f /
-  |grad f|``, the view direction ``d`` (optional) and the SDF features.
+  |grad f|``, the view direction ``d`` (optional) and the SDF features; with
+  ``color_grid_levels`` > 0 also the features of a second, appearance-only grid (the SDF never
+  reads it), so fine texture has a colour-side explanation.
 
 ``forward(points, dirs) -> (sdf (N,), rgb (N, 3))`` like :class:`~l3d_app.models.sdf_net.SDFField`;
 ``sdf(points) -> (...)``; ``sdf_rgb_grad(points, dirs) -> (sdf, rgb, grad (N, 3))``.
@@ -111,6 +113,10 @@ class SDFGridField(torch.nn.Module):
         color_hidden, color_layers: colour MLP (ReLU); use_normals / use_viewdirs: inputs.
         gradient: ``analytic`` (grid Jacobian, exact) or ``fd`` (central differences, ``fd_step``).
         softplus_beta: sharpness of the SDF MLP's Softplus.
+        color_grid_levels: > 0: a second grid encoding (that many levels, 2 features each, from
+            16 to ``color_grid_max_resolution`` vertices per axis, ``2^color_grid_log2_hashmap_size``
+            rows per hashed level) read by the colour MLP only, so that texture finer than the
+            geometry can be explained by colour instead of being carved into the SDF; 0: off.
     """
 
     def __init__(self, scene_box=None, n_levels: int = 8, n_features: int = 2, base_resolution: int = 16,
@@ -118,7 +124,8 @@ class SDFGridField(torch.nn.Module):
                  hidden: int = 64, n_layers: int = 1, sdf_features: int = 15, radius: float = 0.85,
                  color_hidden: int = 64, color_layers: int = 2, use_normals: bool = True,
                  use_viewdirs: bool = True, gradient: str = "analytic", fd_step: float = 0.005,
-                 softplus_beta: float = 100.0):
+                 softplus_beta: float = 100.0, color_grid_levels: int = 0,
+                 color_grid_max_resolution: int = 256, color_grid_log2_hashmap_size: int = 18):
         super().__init__()
         if scene_box is None:
             raise UserError("sdf_grid_field needs the scene box (the data source provides it)")
@@ -137,6 +144,12 @@ class SDFGridField(torch.nn.Module):
         self.out = torch.nn.Linear(dims[-1], 1 + self.n_features)
         self.act = _Softplus100(softplus_beta)
         d = 3 + 3 * self.use_normals + 3 * self.use_viewdirs + self.n_features
+        self.color_encoding = None
+        if int(color_grid_levels) > 0:     # appearance-only features: no gradient path into the SDF
+            self.color_encoding = GridEncoding(int(color_grid_levels), 2, 16, int(color_grid_max_resolution),
+                                               int(color_grid_log2_hashmap_size), bounds=scene_box,
+                                               init_scale=init_scale)
+            d += self.color_encoding.out_dim
         layers = []
         for _ in range(int(color_layers)):
             layers += [torch.nn.Linear(d, int(color_hidden)), torch.nn.ReLU()]
@@ -223,6 +236,8 @@ class SDFGridField(torch.nn.Module):
                 raise UserError("this sdf_grid_field uses view directions: pass dirs")
             parts.append(dirs)
         parts.append(features)
+        if self.color_encoding is not None:
+            parts.append(self.color_encoding(x))
         return torch.sigmoid(self.color(torch.cat(parts, dim=-1)))
 
     def sdf_rgb_grad(self, points: torch.Tensor, dirs: Optional[torch.Tensor] = None
