@@ -55,7 +55,7 @@ def test_on_horizon_reads_the_factor_at_the_nominal_step():
     assert f(50) == pytest.approx(0.05) and f(25) == pytest.approx(0.05 + 0.95 * 0.5)
 
 
-def run_budgeted(tmp_path, monkeypatch, with_horizon: bool):
+def run_budgeted(tmp_path, monkeypatch, with_horizon: bool, eval_cost=lambda n: 10.0):
     """Budget 300 s, reserve 10 s, 3 evaluations' worth of rendering after the loop; steps
     1 s, a 10 s validation after every 20th step. The loop stops at the first k with
     k + 10 floor(k / 20) + 1 + 10 (1 + 3) + 10 >= 300: k = 169."""
@@ -78,7 +78,8 @@ def run_budgeted(tmp_path, monkeypatch, with_horizon: bool):
         return {"loss": model(torch.ones(1, 2)).pow(2).sum()}
 
     def eval_fn(step):
-        clock.elapsed += 10.0
+        clock.elapsed += eval_cost(len(seen.setdefault("evals", [])))
+        seen["evals"].append(step)
         return {"x": 0.0}
     result = training.train(ctx, trainable, step_fn, iters=1000, eval_fn=eval_fn, eval_every=20,
                              reserve_evals=3.0, horizon=horizon if with_horizon else None)
@@ -101,6 +102,19 @@ def test_the_horizon_predicts_the_budget_stop_and_the_schedule_ends_there(tmp_pa
     assert plain_result.step == 169
     expected = 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * (168 - 5) / 995))
     assert plain["lr"][-1] == pytest.approx(0.1 * expected) and plain["lr"][-1] > 0.09
+
+
+def test_the_next_evaluation_costs_what_the_latest_one_did(tmp_path, monkeypatch):
+    """The first validation takes 30 s (a fuzzy field skips no empty space), the later ones 2 s.
+    The loop budgets the final validation and the 3 evaluations after it at the latest cost:
+    it stops at the first k with k + 30 + 2 (floor(k / 20) - 1) + 1 + 2 (1 + 3) + 10 >= 300,
+    k = 231 (the mean of the costs so far, 50 / 11 s, would stop it at 221)."""
+    result, seen = run_budgeted(tmp_path, monkeypatch, with_horizon=True,
+                                eval_cost=lambda n: 30.0 if n == 0 else 2.0)
+    assert result.budget_stop and result.step == 231
+    # after the second validation the prediction is k + (300 - elapsed - 8 - 10) / 1.1: 230.9 at k = 40
+    assert seen["steps"][40] == pytest.approx(40 + (300 - 72 - 8 - 10) / 1.1)
+    assert all(abs(s - 231) <= 0.03 * 231 for s in seen["steps"][40:])
 
 
 def test_without_a_budget_the_horizon_stays_at_iters(tmp_path):
