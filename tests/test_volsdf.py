@@ -105,7 +105,10 @@ def test_volsdf_short_run_improves_psnr_and_writes_everything(compose, tmp_path)
     cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=120", "eval_every=40",
                   "batch_rays=256", "lr=0.005", "pretrain_steps=50", "gif_frames=2", "mesh_resolution=32",
                   "eval_points=2000", "mesh_formats=[obj,glb]")
-    assert (cfg.beta, cfg.alpha, cfg.beta_mode, cfg.density.name) == (0.1, None, "anneal", "volsdf")
+    assert (cfg.beta, cfg.alpha, cfg.beta_mode, cfg.density.name) == (0.3, None, "anneal", "volsdf")
+    # 120 steps: the default start (0.3, translucent, chosen for 1500-step runs) has barely begun
+    # its anneal by step 120 (15.45 -> 15.57 dB); the pipeline's floor is checked from 0.1
+    cfg.beta = 0.1
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     for key in ("psnr", "ssim", "chamfer", "chamfer_rel_diag", "f1", "chamfer_observed",
