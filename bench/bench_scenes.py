@@ -18,8 +18,8 @@ surface and on the part the training cameras observe (% of the true bounding-box
 F1 at 0.02 and 0.05 (observed), and the phantom area: the share of the mesh's area farther
 than 0.05 from the true surface (= 1 - precision at 0.05, from area-uniform samples).
 
-The development scene (``dev``) is the only scene any default may be tuned on; the others
-are held out (``scene.json`` says which). Writes ``outputs/bench_scenes/results.json``, the
+The development scenes (``dev``, ``ground``) are the only scenes any default may be tuned on; the
+others are held out (``scene.json`` says which). Writes ``outputs/bench_scenes/results.json``, the
 markdown table and a plot of PSNR against seconds (``--doc``, default
 ``docs/benchmark_scenes.md`` + ``.png``).
 
