@@ -30,8 +30,8 @@ from l3d_app.diffusion.schedule import alphas_cumprod
 from l3d_app.diffusion.unet import TinyUNet
 from l3d_app.errors import UserError
 from l3d_app.runtime.files import atomic_path
-from l3d_app.runtime.random import rand, randint, randn
 from l3d_app.runtime.paths import resolve_path
+from l3d_app.runtime.random import rand, randint, randn
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "assets" / "builtin_prior.pt"
 FORMAT = "l3d_builtin_prior/1"

@@ -24,7 +24,7 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.textures import sample_texture
-from l3d_app.runtime.random import rand
+from l3d_app.runtime.random import draw_device, rand
 
 # Faces with area <= _REL_DEGENERATE * (largest face area) count as degenerate: this only
 # absorbs round-off in the cross product of (nearly) collinear edges.
@@ -92,8 +92,7 @@ def sample_surface(mesh: Mesh, num_samples: int,
     if num_samples == 0:
         face_index = torch.zeros(0, dtype=torch.long, device=device)
     else:
-        draw_on = generator.device if generator is not None else device   # the run's generator is a CPU one
-        face_index = torch.multinomial(weights.to(draw_on), num_samples, replacement=True,
+        face_index = torch.multinomial(weights.to(draw_device(generator, device)), num_samples, replacement=True,
                                        generator=generator).to(device)
     bary = uniform_barycentrics(num_samples, generator, device=device, dtype=mesh.verts.dtype)
     fv = mesh.verts[mesh.faces[face_index]]  # (S, 3, 3): gather keeps the graph to verts

@@ -30,13 +30,12 @@ from dataclasses import dataclass
 from typing import Optional, Tuple
 
 import torch
-
-from l3d_app.runtime.random import randint, randn
 import torch.nn.functional as F
 
 from l3d_app.diffusion.guidance import guided_noise  # noqa: F401  (re-exported: older imports)
 from l3d_app.diffusion.prior import DiffusionPrior, PromptEmbedding
 from l3d_app.errors import UserError
+from l3d_app.runtime.random import randint, randn
 
 WEIGHTINGS = ("sds", "uniform")  # w(t) = 1 - abar_t (DreamFusion) | w(t) = 1
 TARGET_SPACES = ("model", "pixel")  # the loss on the model-space sample | on its decoded RGB (latent priors)

@@ -17,30 +17,31 @@ import torch
 Device = Union[str, torch.device, None]
 
 
-def _where(generator: Optional[torch.Generator], device: Device) -> Device:
-    """The device a draw is made on: the generator's own, else the target device."""
+def draw_device(generator: Optional[torch.Generator], device: Device) -> Device:
+    """The device a draw is made on: the generator's own, else the target device (for draws
+    these helpers do not cover, e.g. ``torch.multinomial``)."""
     return generator.device if generator is not None else (device or "cpu")
 
 
 def rand(shape: Sequence[int], generator: Optional[torch.Generator], device: Device = None,
          dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """Uniform [0, 1) samples of ``shape`` on ``device``."""
-    return torch.rand(tuple(shape), generator=generator, dtype=dtype, device=_where(generator, device)).to(device or "cpu")
+    return torch.rand(tuple(shape), generator=generator, dtype=dtype, device=draw_device(generator, device)).to(device or "cpu")
 
 
 def randn(shape: Sequence[int], generator: Optional[torch.Generator], device: Device = None,
           dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """Standard normal samples of ``shape`` on ``device``."""
-    return torch.randn(tuple(shape), generator=generator, dtype=dtype, device=_where(generator, device)).to(device or "cpu")
+    return torch.randn(tuple(shape), generator=generator, dtype=dtype, device=draw_device(generator, device)).to(device or "cpu")
 
 
 def randint(low: int, high: int, shape: Sequence[int], generator: Optional[torch.Generator],
             device: Device = None) -> torch.Tensor:
     """Integers in [low, high) of ``shape`` (int64) on ``device``."""
     return torch.randint(int(low), int(high), tuple(shape), generator=generator,
-                         device=_where(generator, device)).to(device or "cpu")
+                         device=draw_device(generator, device)).to(device or "cpu")
 
 
 def randperm(n: int, generator: Optional[torch.Generator], device: Device = None) -> torch.Tensor:
     """A random permutation of ``range(n)`` (int64) on ``device``."""
-    return torch.randperm(int(n), generator=generator, device=_where(generator, device)).to(device or "cpu")
+    return torch.randperm(int(n), generator=generator, device=draw_device(generator, device)).to(device or "cpu")

@@ -218,7 +218,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
         reserve: seconds the task needs after the loop (test evaluation, artefacts); None:
             ``ctx.reserve``.
         reserve_evals: more time kept after the loop, in units of one validation evaluation
-            as timed in this run (the latest one) (e.g. 20 test views + 36 turntable frames after 4-view
+            as timed in this run, the latest one (e.g. 20 test views + 36 turntable frames after 4-view
             evaluations: 14): what follows the loop is mostly rendering, whose cost the loop
             measures, so the budget holds on any machine and image size.
         horizon: a :class:`~l3d_app.runtime.horizon.Horizon` the loop updates after every
@@ -330,7 +330,7 @@ class _LoopClock:
                  now: Callable[[], float] = time.perf_counter):
         self.budget, self.reserve, self.reserve_evals, self.now = budget, reserve, reserve_evals, now
         self.train_seconds, self.steps, self.last_step = 0.0, 0, 0.0
-        self.eval_seconds, self.evals, self.last_eval = 0.0, 0, 0.0
+        self.evals, self.last_eval = 0, 0.0
         self.budget_stop = False
 
     def add_step(self, seconds: float) -> None:
@@ -342,7 +342,6 @@ class _LoopClock:
         t0 = self.now()
         out = fn()
         self.last_eval = self.now() - t0
-        self.eval_seconds += self.last_eval
         self.evals += 1
         return out
 
@@ -351,9 +350,10 @@ class _LoopClock:
 
         The latest, not the mean: an evaluation's cost follows the model (a neural surface
         that is still fuzzy skips no empty space, so volsdf's step-250 validation with a
-        starting beta of 0.3 took several times its later ones, and a mean kept 21 times that
-        for the test views and stopped a 1500-step run at step 750; 3DGS evaluations grow
-        with densification)."""
+        starting beta of 0.3 took several times its later ones, and the loop keeps 39 of them
+        for the final validation, the test views and gifs (`dev`: 20 test views at 2 x 2 rays and
+        72 gif frames against 4 one-ray views), so the mean stopped a 1500-step run at step 750;
+        3DGS evaluations grow with densification)."""
         return self.last_eval if (has_eval and self.evals) else 0.0
 
     def out_of_time(self, elapsed: float, has_eval: bool) -> bool:
