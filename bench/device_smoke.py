@@ -169,6 +169,8 @@ def main(argv=None) -> int:
     unknown = [n for n in names if n not in all_runs()]
     if unknown:
         ap.error(f"unknown task(s) {unknown}; known: {' '.join(all_runs())}")
+    # a run that reads another's output needs its producer in the sweep (once, however many read it)
+    names += sorted({AFTER[n][0] for n in names if n in AFTER} - set(names))
     threads = args.threads if args.threads is not None else (
         max(1, (os.cpu_count() or 1) // args.jobs) if args.jobs > 1 else 0)
     shared = Path(args.shared_data).resolve()
@@ -188,13 +190,10 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         def launch(name):
-            dep = AFTER[name][0] if name in AFTER else None
-            dep_fut = futures.get(dep) if dep else None
+            dep_fut = futures[AFTER[name][0]] if name in AFTER else None   # launched first (above)
 
             def job():
                 dep_row = dep_fut.result() if dep_fut is not None else None
-                if dep is not None and dep_fut is None:          # producer not selected: run it here
-                    dep_row = run_one(dep, args.device, root, shared, args.timeout, threads)
                 row = run_one(name, args.device, root, shared, args.timeout, threads, dep_row)
                 print(_line(row), flush=True)
                 return row
