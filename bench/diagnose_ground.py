@@ -15,12 +15,14 @@ faces counted equally. A diagnosis aid for ``ground`` only: its object positions
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # run from a checkout without installing
 SLAB_TOP = -0.52
 
 
