@@ -203,3 +203,23 @@ def test_isotropic_log_scales_render_and_differentiate_like_three_equal_ones():
     a.square().sum().backward()
     b.square().sum().backward()
     torch.testing.assert_close(one.grad[:, 0], three.grad.sum(-1))      # chain rule through the repeat
+
+
+def test_depth_key_orders_like_the_depths():
+    """The float32 bit-pattern key sorts exactly as the values (negatives, zeros, infinities)."""
+    from l3d_app.render.gaussians_composite import _depth_key
+    g = torch.Generator().manual_seed(5)
+    d = torch.cat([torch.randn(5000, generator=g) * 10.0 ** torch.randint(-30, 30, (5000,), generator=g),
+                   torch.tensor([0.0, -0.0, float("inf"), -float("inf"), 1e-45, -1e-45, 3.0, 3.0])])
+    k = _depth_key(d)
+    assert int(k.min()) >= 0 and int(k.max()) < 2 ** 32
+    assert torch.equal(d[torch.argsort(k)], torch.sort(d).values)
+    d64 = d.double()                                  # other dtypes: the rank
+    assert torch.equal(d64[torch.argsort(_depth_key(d64))], torch.sort(d64).values)
+
+
+def test_zero_extent_splats_overlap_no_tile():
+    mean2d = torch.tensor([[5.0, 3.0], [5.0, 3.0], [2.0, 2.0]], dtype=DT)
+    ext = torch.tensor([[3.0, 3.0], [0.0, 0.0], [0.0, 1.0]], dtype=DT)
+    sid, ts, tc = bin_tiles(mean2d, ext, torch.tensor([1.0, 2.0, 3.0], dtype=DT), W, H, 4)
+    assert set(sid.tolist()) == {0} and int(tc.sum()) == 6          # splat 0: x tiles 0-2, y tiles 0-1

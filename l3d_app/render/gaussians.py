@@ -19,7 +19,7 @@ at +0.5, see :mod:`l3d_app.geometry.cameras`):
    the matching circle radius ``r sqrt(lambda_max)`` (for screen-size pruning).
 3. **Tile binning** (:mod:`l3d_app.render.gaussians_composite`). Every (splat, tile)
    overlap of the splat's bounding box is enumerated and sorted by one int64 key
-   ``tile * M + depth_rank``; each tile's pixels are tested against its splats in padded
+   ``tile * 2^32 + depth key``; each tile's pixels are tested against its splats in padded
    batches and only the (pixel, splat) pairs with ``alpha >= 1/255`` are kept, as one flat
    list grouped by pixel and sorted by depth. Work and memory follow the number of
    contributing overlaps, never ``N * H * W``; at most ``max_elements`` candidates are live.
@@ -186,24 +186,24 @@ def rasterize_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: to
     H, W = cams.height, cams.width
     colors, alphas, depths, pairs = [], [], [], []
     for b in range(cams.batch_size):
-        vis = torch.nonzero(proj["visible"][b]).reshape(-1)
-        if vis.numel() == 0:
+        if not bool(proj["visible"][b].any()):
             colors.append(bg.expand(H, W, 3) + 0 * means.sum())
             alphas.append(torch.zeros(H, W, dtype=dt, device=means.device))
             depths.append(torch.zeros(H, W, dtype=dt, device=means.device))
             pairs.append(0)
             continue
-        take = (lambda x: x) if vis.numel() == N else (lambda x: x[vis])  # noqa: E731  all visible: no gather
-        d = take(means) - centres[b]
+        # every splat takes part (no gather of the visible ones, no scatter of their gradients
+        # back): a culled splat has a zero extent, so it overlaps no tile and gets zero gradient
+        d = means - centres[b]
         d = d * torch.rsqrt((d * d).sum(-1, keepdim=True).clamp_min(1e-24))
-        rgb = sh_to_color(sh_degree, take(sh_coeffs), d)
-        m2, z, conic, op = take(means2d[b]), take(proj["depth"][b]), take(proj["conic"][b]), take(opacity)
+        rgb = sh_to_color(sh_degree, sh_coeffs, d)
+        m2, z, conic = means2d[b], proj["depth"][b], proj["conic"][b]
         with torch.no_grad():
-            sid, t_start, t_count = bin_tiles(m2, take(proj["extent"][b]), z, W, H, tile_size)
-            pix, spl = splat_pixel_pairs(sid, t_start, t_count, m2, conic, op, W, H, tile_size, max_elements)
+            sid, t_start, t_count = bin_tiles(m2, proj["extent"][b], z, W, H, tile_size)
+            pix, spl = splat_pixel_pairs(sid, t_start, t_count, m2, conic, opacity, W, H, tile_size, max_elements)
         feats = torch.cat([rgb, z[:, None]], -1)
         fn = CompositeFunction.apply if custom_backward else composite_pairs
-        acc, a = fn(pix, spl, m2, conic, op, feats, W, H)
+        acc, a = fn(pix, spl, m2, conic, opacity, feats, W, H)
         acc, a = acc.reshape(H, W, -1), a.reshape(H, W)
         n_pairs = int(sid.numel())
         colors.append(acc[..., :3] + (1.0 - a)[..., None] * bg)

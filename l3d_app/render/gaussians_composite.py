@@ -3,8 +3,8 @@
 The fast path of :func:`l3d_app.render.gaussians.rasterize_gaussians`:
 
 1. :func:`bin_tiles` enumerates every (splat, tile) overlap of the splats' bounding boxes
-   and sorts them with one argsort of the int64 key ``tile * M + depth_rank`` (the ranks
-   come from an argsort of the M depths).
+   and sorts them with one argsort of the int64 key ``tile * 2^32 + depth_key`` (the key is
+   the float32 depth's bit pattern made monotone, or its rank for other dtypes).
 2. :func:`splat_pixel_pairs` (no autograd) tests, per tile, all its pixels against all its
    splats in padded batches (tiles grouped by how many splats they hold, powers of two, so
    padding stays below 2x; at most ``max_elements`` candidates live at once): the quadratic
@@ -36,13 +36,30 @@ T_MIN = 1e-4
 LOG_T_MIN = math.log(T_MIN)
 
 
+_DEPTH_KEYS = 1 << 32
+
+
+def _depth_key(depth: torch.Tensor) -> torch.Tensor:
+    """(M,) int64 in [0, 2^32) ordered as ``depth``: for float32 its bit pattern made monotone
+    (no sort of the depths; equal depths tie), otherwise the rank in an argsort."""
+    if depth.dtype == torch.float32:
+        bits = depth.contiguous().view(torch.int32).long()
+        # IEEE floats order as sign-magnitude integers: negatives (bits < 0) map to [0, 2^31)
+        # in reverse, non-negatives to [2^31, 2^32)
+        return torch.where(bits < 0, -1 - bits, bits + (1 << 31))
+    rank = torch.empty(depth.shape[0], dtype=torch.long, device=depth.device)
+    rank[torch.argsort(depth)] = torch.arange(depth.shape[0], device=depth.device)
+    return rank
+
+
 @torch.no_grad()
 def bin_tiles(mean2d: torch.Tensor, ext: torch.Tensor, depth: torch.Tensor, width: int, height: int,
               tile: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(splat, tile) overlaps sorted by (tile, depth).
 
-    Args: mean2d (M, 2) px, ext (M, 2) half-extents of the bounding box in x, y (px),
-        depth (M,) camera z; tile: tile side (px).
+    Args: mean2d (M, 2) px, ext (M, 2) half-extents of the bounding box in x, y (px; a
+        splat with a zero half-extent is culled and overlaps no tile), depth (M,) camera z;
+        tile: tile side (px).
     Returns: sid (n_pairs,) splat index per overlap, sorted by tile then depth;
         tile_start (n_tiles,) first overlap of each tile; tile_count (n_tiles,).
     """
@@ -55,15 +72,13 @@ def bin_tiles(mean2d: torch.Tensor, ext: torch.Tensor, depth: torch.Tensor, widt
     y0 = torch.floor((v - ext[:, 1]) / tile).clamp(0, nty).long()
     y1 = (torch.floor((v + ext[:, 1]) / tile) + 1).clamp(0, nty).long()
     wg, hg = (x1 - x0).clamp_min(0), (y1 - y0).clamp_min(0)
-    cnt = wg * hg
+    cnt = torch.where((ext > 0).all(1), wg * hg, torch.zeros_like(wg))
     n_pairs = int(cnt.sum())
-    rank = torch.empty(M, dtype=torch.long, device=dev)
-    rank[torch.argsort(depth)] = torch.arange(M, device=dev)
     gid = torch.repeat_interleave(torch.arange(M, device=dev), cnt)
     local = torch.arange(n_pairs, device=dev) - (torch.cumsum(cnt, 0) - cnt)[gid]
     wgg = wg[gid]
     tid = (y0[gid] + local // wgg) * ntx + x0[gid] + local % wgg
-    order = torch.argsort(tid * M + rank[gid])
+    order = torch.argsort(tid * _DEPTH_KEYS + _depth_key(depth)[gid])
     sid = gid[order]
     count = torch.bincount(tid, minlength=ntx * nty)
     return sid, torch.cumsum(count, 0) - count, count
@@ -117,15 +132,15 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
                 idx = torch.where(slot < tile_count[t][:, None], tile_start[t][:, None] + slot, sid.numel())
                 s = sidp[idx].reshape(-1)                                              # (G*L,)
                 a = attr.index_select(0, s).reshape(-1, L, 6)                          # (G, L, 6)
+                u, v, A, B, C, o = a.unbind(-1)                                        # each (G, L)
                 x0, y0 = (t % ntx) * tile, torch.div(t, ntx, rounding_mode="floor") * tile
-                ox = a[..., 0] - (x0.to(dt) + 0.5)[:, None]                            # splat centre, tile-local
-                oy = a[..., 1] - (y0.to(dt) + 0.5)[:, None]
-                A, B, C = a[..., 2], a[..., 3], a[..., 4]
+                ox = u - (x0.to(dt) + 0.5)[:, None]                                    # splat centre, tile-local
+                oy = v - (y0.to(dt) + 0.5)[:, None]
                 coef = torch.stack([A * ox * ox + 2 * B * ox * oy + C * oy * oy, -2 * (A * ox + B * oy),
                                     -2 * (B * ox + C * oy), A, 2 * B, C], 1)            # (G, 6, L)
                 q = torch.matmul(mono, coef)                                           # (G, P, L)
                 # alpha = o exp(-q/2) >= 1/255  <=>  q <= 2 ln(255 o)   (padding: o = 0, never)
-                thr = 2.0 * torch.log(a[..., 5] * 255.0)
+                thr = 2.0 * torch.log(o * 255.0)
                 f = torch.nonzero((q <= thr[:, None, :]).reshape(-1)).reshape(-1)
                 gp = torch.div(f, L, rounding_mode="floor")                            # (tile, pixel)
                 col, row = x0[:, None] + lx, y0[:, None] + ly                          # (G, P)
@@ -191,15 +206,18 @@ class CompositeFunction(torch.autograd.Function):
 
     forward(pix (K,), spl (K,), mean2d (M, 2), conic (M, 3), opacity (M,), feats (M, F),
     width, height) -> acc (H*W, F) = ``sum_k w_k f_k``, alpha (H*W,) = ``sum_k w_k``, with
-    ``w_k = alpha_k T_k`` and early-terminated pairs dropped.
+    ``w_k = alpha_k T_k`` and early-terminated pairs dropped. The per-pair features, the
+    forward sum and the backward's scatter to the splats are attribute-major ((columns, pairs),
+    each row contiguous): on CPU an ``index_add_`` along dim 1 of that layout is several times
+    faster than into the rows of a (splats, columns) array. The outputs and gradients are
+    (rows, columns) views of them.
     """
 
     @staticmethod
     def forward(ctx, pix, spl, mean2d, conic, opacity, feats, width, height):
         seg, last = _segments(pix)
         centres = pixel_centres(width, height, mean2d.dtype, mean2d.device)
-        attr = _pack(mean2d, conic, opacity)
-        alpha, dx, dy, a = _pair_terms(pix, spl, attr, centres)
+        alpha, dx, dy, a = _pair_terms(pix, spl, _pack(mean2d, conic, opacity), centres)
         log_t, keep = _transmittance(alpha, seg, last)
         if not bool(keep.all()):                 # terminated pairs carry no work (nor gradient)
             k = torch.nonzero(keep).reshape(-1)
@@ -207,28 +225,33 @@ class CompositeFunction(torch.autograd.Function):
             seg, last = _segments(pix)
         T = torch.exp(log_t).to(alpha.dtype)
         w = alpha * T
-        fk = torch.cat([feats.index_select(0, spl), torch.ones_like(w)[:, None]], 1)     # (K, F+1)
-        acc = torch.zeros(width * height, fk.shape[1], dtype=feats.dtype, device=feats.device)
-        acc.index_add_(0, pix, fk * w[:, None])
+        fk = torch.cat([feats.t().contiguous().index_select(1, spl), torch.ones_like(w)[None]], 0)     # (F+1, K)
+        acc = torch.zeros(fk.shape[0], width * height, dtype=feats.dtype, device=feats.device)
+        acc.index_add_(1, pix, fk * w)
         ctx.save_for_backward(pix, spl, seg, last, alpha, T, dx, dy, a, fk)
         ctx.n_splats = mean2d.shape[0]
-        return acc[:, :-1], acc[:, -1]
+        return acc[:-1].t(), acc[-1]
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_acc, g_alpha):
         pix, spl, seg, last, alpha, T, dx, dy, a, fk = ctx.saved_tensors
         w = alpha * T
-        F = fk.shape[1] - 1
-        G = torch.cat([g_acc, g_alpha[:, None]], 1).index_select(0, pix)              # (K, F+1)
-        g = (G * fk).sum(1)                                                          # dL/d(acc at pair)
+        F = fk.shape[0] - 1
+        G = torch.cat([g_acc.t(), g_alpha[None]], 0).index_select(1, pix)             # (F+1, K)
+        g = (G * fk).sum(0)                                                          # dL/d(acc at pair)
         cs = torch.cumsum((w * g).to(torch.float64), 0)
         suffix = (cs.index_select(0, last).index_select(0, seg) - cs).to(alpha.dtype)  # sum_{j > k} w_j g_j
         d_alpha = T * g - suffix / (1.0 - alpha)
         d_pow = torch.where(alpha < ALPHA_MAX, d_alpha * alpha, torch.zeros_like(d_alpha))
-        out = torch.stack([d_pow * (a[:, 2] * dx + a[:, 3] * dy), d_pow * (a[:, 3] * dx + a[:, 4] * dy),
-                           -0.5 * d_pow * dx * dx, -d_pow * dx * dy, -0.5 * d_pow * dy * dy,
-                           d_pow / a[:, 5]], 1)
-        out = torch.cat([out, G[:, :F] * w[:, None]], 1)
-        g_splat = torch.zeros(ctx.n_splats, 6 + F, dtype=out.dtype, device=out.device).index_add_(0, spl, out)
-        return None, None, g_splat[:, :2], g_splat[:, 2:5], g_splat[:, 5], g_splat[:, 6:], None, None
+        out = torch.empty(6 + F, w.shape[0], dtype=w.dtype, device=w.device)            # (6 + F, K)
+        A, B, C, o = a[:, 2], a[:, 3], a[:, 4], a[:, 5]
+        torch.mul(d_pow, A * dx + B * dy, out=out[0])
+        torch.mul(d_pow, B * dx + C * dy, out=out[1])
+        torch.mul(-0.5 * d_pow, dx * dx, out=out[2])
+        torch.mul(-d_pow, dx * dy, out=out[3])
+        torch.mul(-0.5 * d_pow, dy * dy, out=out[4])
+        torch.div(d_pow, o, out=out[5])
+        torch.mul(G[:F], w, out=out[6:])
+        g_splat = torch.zeros(6 + F, ctx.n_splats, dtype=out.dtype, device=out.device).index_add_(1, spl, out)
+        return None, None, g_splat[:2].t(), g_splat[2:5].t(), g_splat[5], g_splat[6:].t(), None, None

@@ -54,14 +54,16 @@ def eval_sh(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tens
         dirs: (..., 3) unit viewing directions (camera -> point, world frame).
     Returns:
         (..., C) raw SH value (add 0.5 and clamp for a colour, see :func:`sh_to_color`).
-        One contraction of the basis with the coefficients, so the backward to the
-        coefficients is a single product (no per-coefficient slices).
+        One batched matrix product of the basis with the coefficients, so the backward to
+        the coefficients is a single product too (no per-coefficient slices, no (..., K, C)
+        temporaries).
     """
     k = num_sh_coeffs(degree)
     if coeffs.shape[-2] < k:
         raise ValueError(f"degree {degree} needs {k} SH coefficients, got {coeffs.shape[-2]}")
     basis = sh_basis(degree, dirs)
-    return (basis[..., None] * coeffs[..., :k, :]).sum(-2)
+    # a batched (1, K) @ (K, C) product: forward and backward are each one bmm
+    return torch.matmul(basis.unsqueeze(-2), coeffs[..., :k, :]).squeeze(-2)
 
 
 def sh_to_color(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
