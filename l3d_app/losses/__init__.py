@@ -1,4 +1,4 @@
-"""Losses: eikonal, mesh regularisers, NeRF regularisers, occupancy BCE, score distillation."""
+"""Losses: eikonal, occupied volume, mesh regularisers, NeRF regularisers, occupancy BCE, score distillation."""
 
 from l3d_app.exports import lazy_exports
 
@@ -7,6 +7,7 @@ from l3d_app.losses import occupancy, mesh_regularizers  # noqa: F401,E402
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "eikonal_loss": "eikonal",
+    "occupied_volume": "free_space",
     "laplacian_smoothing": "mesh_regularizers",
     "normal_consistency": "mesh_regularizers",
     "edge_length": "mesh_regularizers",

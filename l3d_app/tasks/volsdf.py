@@ -25,7 +25,8 @@
   zero level set (:func:`~l3d_app.render.sdf_volume.render_sdf_rays`); metrics report both
   counts (``samples_per_ray``, ``fine_samples_per_ray``).
 * loss: colour MSE + ``w_eikonal`` x eikonal loss at the fine samples and at
-  ``eikonal_points`` random box points, through the shared
+  ``eikonal_points`` random box points (+ ``w_free`` x the occupied-volume prior
+  :func:`~l3d_app.losses.free_space.occupied_volume` at the same box points, default off), through the shared
   :func:`~l3d_app.runtime.training.train` loop (evaluation, checkpoints, ``resume=true``);
   ``optim=warmup_cosine`` (Adam eps 1e-15, ``warmup_steps`` linear warm-up then cosine decay to
   ``lr * lr_final_ratio``).
@@ -56,12 +57,13 @@ surface scores are of the culled mesh); ``test_views.png``; ``metrics.json``.
 from __future__ import annotations
 
 import time
-from typing import Dict
+from typing import Dict, Tuple
 
 import torch
 
 from l3d_app.geometry.rays import camera_rays, pixel_axes
 from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
+from l3d_app.losses.free_space import occupied_volume
 from l3d_app.losses.occupancy import coverage_bce
 from l3d_app.metrics.surface_scores import surface_scores
 from l3d_app.models.level_schedule import LevelSchedule
@@ -143,11 +145,16 @@ def volsdf(cfg, ctx) -> dict:
         if flat_mask is not None:
             mask_loss = coverage_bce(out["optical_depth"], flat_mask[idx])
             loss, logs["mask_loss"] = loss + float(cfg.w_mask) * mask_loss, mask_loss.detach()
-        if float(cfg.w_eikonal) > 0:
+        if float(cfg.w_eikonal) > 0 or float(cfg.w_free) > 0:
             u = rand((int(cfg.eikonal_points), 3), ctx.generator, ctx.device)
-            grads = [gradient_at(model, lo + u * (hi - lo))] + ([out["grad"].reshape(-1, 3)] if "grad" in out else [])
-            eik = eikonal_loss(torch.cat(grads))
-            loss, logs["eikonal"] = loss + float(cfg.w_eikonal) * eik, eik.detach()
+            f_box, g_box = sdf_and_gradient_at(model, lo + u * (hi - lo))
+            if float(cfg.w_eikonal) > 0:
+                grads = [g_box] + ([out["grad"].reshape(-1, 3)] if "grad" in out else [])
+                eik = eikonal_loss(torch.cat(grads))
+                loss, logs["eikonal"] = loss + float(cfg.w_eikonal) * eik, eik.detach()
+            if float(cfg.w_free) > 0:    # the least solid the images allow
+                occ = occupied_volume(f_box)
+                loss, logs["occupied_volume"] = loss + float(cfg.w_free) * occ, occ.detach()
         stats["samples_per_ray"] = float(out["samples_per_ray"])
         stats["fine_samples_per_ray"] = float(out["fine_samples_per_ray"])
         return {**logs, "loss": loss}
@@ -218,11 +225,13 @@ def volsdf(cfg, ctx) -> dict:
     return metrics
 
 
-def gradient_at(model, points: torch.Tensor) -> torch.Tensor:
-    """(N, 3) differentiable SDF gradient at points (N, 3): the model's exact one if it has it."""
+def sdf_and_gradient_at(model, points: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """SDF (N,) and its spatial gradient (N, 3) at points (N, 3), both differentiable w.r.t. the
+    model: its exact gradient if it has one, else autograd's."""
     if hasattr(model, "sdf_features_gradient"):
-        return model.sdf_features_gradient(points)[2]
-    return sdf_gradient(model.sdf, points, create_graph=True)
+        f, _, grad = model.sdf_features_gradient(points)
+        return f, grad
+    return model.sdf(points), sdf_gradient(model.sdf, points, create_graph=True)
 
 
 def _ground_truth(cfg, data):

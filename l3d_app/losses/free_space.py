@@ -1,0 +1,20 @@
+"""Occupied-volume prior for SDF fields: the least solid the images allow.
+
+``occupied_volume(f) = mean(relu(-f))`` over SDF values ``f`` (N,) at points drawn uniformly in
+the scene box: the box volume times this is the integral of the depth below the surface over
+the solid, ``|box| * E[max(0, -f)]`` (world units^4 for a unit-gradient SDF). Its gradient
+raises ``f`` only INSIDE the solid, each point by ``1/N``, so a solid nothing in the images
+holds up (the initial sphere's leftover where no camera looks, a mound the colour network can
+paint over) shrinks towards the least surface, while surfaces the photometric loss places stay
+where they are (the push on a thin plate, ``depth <= half its thickness``, is small). Free
+space (``f >= 0``) costs nothing and gets no gradient.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def occupied_volume(sdf: torch.Tensor) -> torch.Tensor:
+    """Scalar ``mean(max(0, -sdf))`` of SDF values (world units) at uniform box points."""
+    return torch.relu(-sdf).mean()
