@@ -4,9 +4,10 @@ reaches only the points inside."""
 
 import math
 
+import pytest
 import torch
 
-from l3d_app.losses.free_space import occupied_volume
+from l3d_app.losses.free_space import occupied_fraction, occupied_volume
 
 
 def test_sphere_value_matches_the_analytic_integral():
@@ -25,3 +26,20 @@ def test_gradient_only_inside_and_equal_per_point():
     occupied_volume(f).backward()
     assert torch.equal(f.grad, torch.tensor([-0.2, -0.2, 0.0, 0.0, 0.0], dtype=torch.float64))
     assert float(occupied_volume(torch.tensor([0.0, 1.0, 3.0]))) == 0.0
+
+
+def test_occupied_fraction_is_the_inside_share_and_pushes_at_the_boundary():
+    g = torch.Generator().manual_seed(1)
+    x = torch.rand(400_000, 3, generator=g, dtype=torch.float64) * 2 - 1
+    r = 0.6
+    share = float(occupied_fraction(x.norm(dim=-1) - r, softness=1e-4))
+    expected = (4 / 3) * math.pi * r ** 3 / 8
+    assert abs(share - expected) < 0.01 * expected                    # about 5 standard errors
+    f = torch.tensor([-1.0, -0.01, 0.0, 0.01, 1.0], dtype=torch.float64, requires_grad=True)
+    occupied_fraction(f, softness=0.01).backward()
+    s = torch.sigmoid(torch.tensor([1.0, 0.0, -1.0], dtype=torch.float64))
+    expect_mid = -(s * (1 - s)) / 0.01 / 5                            # d/df sigmoid(-f/h) / N
+    assert torch.allclose(f.grad[1:4], expect_mid)
+    assert abs(float(f.grad[0])) < 1e-40 and abs(float(f.grad[4])) < 1e-40   # far from the boundary: none
+    with pytest.raises(ValueError):
+        occupied_fraction(f, softness=0.0)

@@ -1,4 +1,4 @@
-"""Occupied-volume prior for SDF fields: the least solid the images allow.
+"""Occupied-volume priors for SDF fields: the least solid the images allow.
 
 ``occupied_volume(f) = mean(relu(-f))`` over SDF values ``f`` (N,) at points drawn uniformly in
 the scene box: the box volume times this is the integral of the depth below the surface over
@@ -8,6 +8,10 @@ holds up (the initial sphere's leftover where no camera looks, a mound the colou
 paint over) shrinks towards the least surface, while surfaces the photometric loss places stay
 where they are (the push on a thin plate, ``depth <= half its thickness``, is small). Free
 space (``f >= 0``) costs nothing and gets no gradient.
+
+``occupied_fraction(f, softness) = mean(sigmoid(-f / softness))``: the share of the box inside
+the solid, smoothed over ``softness`` world units; its gradient sits at the boundary
+(``|f|`` within a few ``softness``) and leaves the inside's values alone.
 """
 
 from __future__ import annotations
@@ -18,3 +22,11 @@ import torch
 def occupied_volume(sdf: torch.Tensor) -> torch.Tensor:
     """Scalar ``mean(max(0, -sdf))`` of SDF values (world units) at uniform box points."""
     return torch.relu(-sdf).mean()
+
+
+def occupied_fraction(sdf: torch.Tensor, softness: float) -> torch.Tensor:
+    """Scalar ``mean(sigmoid(-sdf / softness))`` (unitless, in [0, 1]) of SDF values at uniform box
+    points; ``softness`` > 0 in world units."""
+    if not float(softness) > 0:
+        raise ValueError(f"softness must be > 0, got {softness}")
+    return torch.sigmoid(-sdf / float(softness)).mean()

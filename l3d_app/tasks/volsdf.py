@@ -25,8 +25,9 @@
   zero level set (:func:`~l3d_app.render.sdf_volume.render_sdf_rays`); metrics report both
   counts (``samples_per_ray``, ``fine_samples_per_ray``).
 * loss: colour MSE + ``w_eikonal`` x eikonal loss at the fine samples and at
-  ``eikonal_points`` random box points (+ ``w_free`` x the occupied-volume prior
-  :func:`~l3d_app.losses.free_space.occupied_volume` at the same box points, default off), through the shared
+  ``eikonal_points`` random box points (+ ``w_free`` x an occupied-volume prior at the same box points, default off:
+  :func:`~l3d_app.losses.free_space.occupied_volume`, or with ``free_softness`` > 0
+  :func:`~l3d_app.losses.free_space.occupied_fraction`), through the shared
   :func:`~l3d_app.runtime.training.train` loop (evaluation, checkpoints, ``resume=true``);
   ``optim=warmup_cosine`` (Adam eps 1e-15, ``warmup_steps`` linear warm-up then cosine decay to
   ``lr * lr_final_ratio``).
@@ -63,7 +64,7 @@ import torch
 
 from l3d_app.geometry.rays import camera_rays, pixel_axes
 from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
-from l3d_app.losses.free_space import occupied_volume
+from l3d_app.losses.free_space import occupied_fraction, occupied_volume
 from l3d_app.losses.occupancy import coverage_bce
 from l3d_app.metrics.surface_scores import surface_scores
 from l3d_app.models.level_schedule import LevelSchedule
@@ -153,7 +154,8 @@ def volsdf(cfg, ctx) -> dict:
                 eik = eikonal_loss(torch.cat(grads))
                 loss, logs["eikonal"] = loss + float(cfg.w_eikonal) * eik, eik.detach()
             if float(cfg.w_free) > 0:    # the least solid the images allow
-                occ = occupied_volume(f_box)
+                soft = float(cfg.free_softness)
+                occ = occupied_fraction(f_box, soft) if soft > 0 else occupied_volume(f_box)
                 loss, logs["occupied_volume"] = loss + float(cfg.w_free) * occ, occ.detach()
         stats["samples_per_ray"] = float(out["samples_per_ray"])
         stats["fine_samples_per_ray"] = float(out["fine_samples_per_ray"])
