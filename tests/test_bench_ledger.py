@@ -2,18 +2,13 @@
 (scene, method) pairs replaces exactly those rows and keeps the others with their own
 commit, date and load, so a table never mixes figures without saying where each came from."""
 
-import importlib.util
 import json
-from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from bench_scripts import REPO, load_bench_script
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_scenes", REPO / "bench" / "bench_scenes.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench_script("bench_scenes")
 
 
 def _row(scene, method, psnr, commit):

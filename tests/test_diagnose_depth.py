@@ -1,20 +1,15 @@
 """bench/diagnose_depth.py's shares of a learnt surface in front of / behind the truth, counted by
 hand on depth maps built for the purpose (+inf where a mesh covers no pixel)."""
 
-import importlib.util
 import math
-from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
+from bench_scripts import load_bench_script
 
 
 def _diag():
-    spec = importlib.util.spec_from_file_location("diagnose_depth", REPO / "bench" / "diagnose_depth.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench_script("diagnose_depth")
 
 
 def test_shares_count_front_behind_and_uncovered_pixels():
