@@ -1,6 +1,5 @@
-"""The occupied-volume prior (losses/free_space.py): its value is the box-normalised integral of
-the depth inside a solid, checked against the analytic value for a sphere, and its gradient
-reaches only the points inside."""
+"""The occupied-volume priors (losses/free_space.py): against a ball's analytic depth integral and
+volume share, and their analytic gradients (inside only; at the boundary only)."""
 
 import math
 
@@ -18,7 +17,7 @@ def test_sphere_value_matches_the_analytic_integral():
     r = 0.6
     value = float(occupied_volume(x.norm(dim=-1) - r))
     expected = math.pi * r ** 4 / 24
-    assert abs(value - expected) < 0.02 * expected      # about 5 standard errors of the mean
+    assert abs(value - expected) < 0.02 * expected      # about 8 standard errors of the mean (4.3e-5)
 
 
 def test_gradient_only_inside_and_equal_per_point():
@@ -34,7 +33,7 @@ def test_occupied_fraction_is_the_inside_share_and_pushes_at_the_boundary():
     r = 0.6
     share = float(occupied_fraction(x.norm(dim=-1) - r, softness=1e-4))
     expected = (4 / 3) * math.pi * r ** 3 / 8
-    assert abs(share - expected) < 0.01 * expected                    # about 5 standard errors
+    assert abs(share - expected) < 0.03 * expected                    # about 7 standard errors (5e-4)
     f = torch.tensor([-1.0, -0.01, 0.0, 0.01, 1.0], dtype=torch.float64, requires_grad=True)
     occupied_fraction(f, softness=0.01).backward()
     s = torch.sigmoid(torch.tensor([1.0, 0.0, -1.0], dtype=torch.float64))

@@ -5,9 +5,11 @@ the scene box: the box volume times this is the integral of the depth below the 
 the solid, ``|box| * E[max(0, -f)]`` (world units^4 for a unit-gradient SDF). Its gradient
 raises ``f`` only INSIDE the solid, each point by ``1/N``, so a solid nothing in the images
 holds up (the initial sphere's leftover where no camera looks, a mound the colour network can
-paint over) shrinks towards the least surface, while surfaces the photometric loss places stay
-where they are (the push on a thin plate, ``depth <= half its thickness``, is small). Free
-space (``f >= 0``) costs nothing and gets no gradient.
+paint over) is pushed towards the least surface; the push on a thin plate is small (its depth
+is at most half its thickness). Free space (``f >= 0``) costs nothing and gets no gradient.
+Measured on the development scene ``ground`` (docs/measured/volsdf.md): neither prior removed
+the mound in view, the fraction form cleared the leftover where no ray passes at a cost in
+PSNR and surface roughness, and larger weights were worse; volsdf keeps them off.
 
 ``occupied_fraction(f, softness) = mean(sigmoid(-f / softness))``: the share of the box inside
 the solid, smoothed over ``softness`` world units; its gradient sits at the boundary

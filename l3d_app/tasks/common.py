@@ -19,6 +19,14 @@ def require_positive(cfg, *keys: str) -> None:
             raise UserError(f"{key} must be a positive number, got {value!r}")
 
 
+def require_nonnegative(cfg, *keys: str) -> None:
+    """UserError naming the first of ``keys`` whose config value is not a number >= 0."""
+    for key in keys:
+        value = cfg.get(key)
+        if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+            raise UserError(f"{key} must be a number >= 0, got {value!r}")
+
+
 @torch.no_grad()
 def render_frames(renderer, mesh, cams: Cameras, batch: int, desc: str,
                   keys=("image", "alpha", "depth")) -> Dict[str, torch.Tensor]:

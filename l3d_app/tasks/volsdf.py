@@ -82,7 +82,7 @@ from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import background_parameter, require_positive
+from l3d_app.tasks.common import background_parameter, require_nonnegative, require_positive
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
                                         turntable_width)
 
@@ -91,6 +91,7 @@ from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, eva
 def volsdf(cfg, ctx) -> dict:
     """Train on the train views, validate on val, test once; surface scores, gifs, mesh, metrics."""
     require_positive(cfg, "iters", "batch_rays", "chunk", "supersample", "val_supersample", "eval_every")
+    require_nonnegative(cfg, "w_free", "free_softness")
     data = DATASETS.build(cfg.data).to(ctx.device)
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
@@ -156,7 +157,7 @@ def volsdf(cfg, ctx) -> dict:
             if float(cfg.w_free) > 0:    # the least solid the images allow
                 soft = float(cfg.free_softness)
                 occ = occupied_fraction(f_box, soft) if soft > 0 else occupied_volume(f_box)
-                loss, logs["occupied_volume"] = loss + float(cfg.w_free) * occ, occ.detach()
+                loss, logs["free_prior"] = loss + float(cfg.w_free) * occ, occ.detach()
         stats["samples_per_ray"] = float(out["samples_per_ray"])
         stats["fine_samples_per_ray"] = float(out["fine_samples_per_ray"])
         return {**logs, "loss": loss}
