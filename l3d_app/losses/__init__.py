@@ -8,6 +8,7 @@ from l3d_app.losses import occupancy, mesh_regularizers  # noqa: F401,E402
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "eikonal_loss": "eikonal",
     "occupied_volume": "free_space",
+    "occupied_fraction": "free_space",
     "laplacian_smoothing": "mesh_regularizers",
     "normal_consistency": "mesh_regularizers",
     "edge_length": "mesh_regularizers",
