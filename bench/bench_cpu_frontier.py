@@ -63,7 +63,7 @@ from l3d_app.losses.eikonal import eikonal_loss  # noqa: E402
 from l3d_app.models.nerf import GridField  # noqa: E402
 from l3d_app.models.sdf_grid import SDFGridField  # noqa: E402
 from l3d_app.render.gaussians import rasterize_gaussians  # noqa: E402
-from l3d_app.render.sdf_volume import segment_optical_depth  # noqa: E402
+from l3d_app.render.densities import volsdf_density  # noqa: E402
 from l3d_app.render.volume import composite  # noqa: E402
 from l3d_app.runtime.precision import autocast, maybe_compile  # noqa: E402
 
@@ -118,7 +118,8 @@ def sdf_path(args) -> Tuple[torch.nn.Module, Dict[str, torch.Tensor], Callable]:
 
     def step(field, pts, dirs, eik, t, far, target):
         f, rgb, grad = field.sdf_rgb_grad(pts, dirs)
-        tau = segment_optical_depth(f.reshape(t.shape).float(), t, far, "volsdf", 100.0, 0.01, 64.0)
+        seg = torch.diff(torch.cat([t, far[:, None]], dim=1), dim=1)           # sample i to i+1, the last to far
+        tau = volsdf_density(f.reshape(t.shape).float(), 100.0, 0.01) * seg    # VolSDF, alpha 100, beta 0.01
         out = composite(rgb.reshape(*t.shape, 3).float(), t, sigmas=tau, deltas=torch.ones_like(t))["color"]
         g_eik = field.sdf_features_gradient(eik)[2]
         loss = ((out - target) ** 2).mean() + 0.1 * eikonal_loss(torch.cat([grad, g_eik]).float())
@@ -252,6 +253,33 @@ def _fewer_rays(inputs: Dict[str, torch.Tensor], r: int) -> Dict[str, torch.Tens
     return {"pts": inputs["pts"][: r * S], "t": inputs["t"][:r], "target": inputs["target"][:r]}
 
 
+def matmul_probe(n: int = 65536, k: int = 128, repeats: int = 10) -> Dict[str, float]:
+    """Milliseconds of one bare (n, k) @ (k, k) matmul in fp32 and in bf16 (the median of
+    ``repeats`` after two warm-ups) at the current thread count: whether this CPU has native bf16
+    matrix instructions (AMX, AVX512-BF16), which the hot paths' timings alone do not show."""
+    g = torch.Generator().manual_seed(0)
+    x, w = torch.randn(n, k, generator=g), torch.randn(k, k, generator=g)
+    out = {}
+    for name, dt in (("fp32", torch.float32), ("bf16", torch.bfloat16)):
+        a, b = x.to(dt), w.to(dt)
+        times = []
+        for i in range(repeats + 2):
+            t0 = time.perf_counter()
+            a @ b
+            if i >= 2:
+                times.append(time.perf_counter() - t0)
+        out[f"matmul_{name}_ms"] = 1e3 * statistics.median(times)
+    return out
+
+
+def machine_line() -> str:
+    """CPU capability as torch sees it, and the bare-matmul probe."""
+    m = matmul_probe()
+    return (f"torch CPU capability {torch.backends.cpu.get_cpu_capability()}; bare 65536x128 @ 128x128 matmul "
+            f"fp32 {m['matmul_fp32_ms']:.2f} ms, bf16 {m['matmul_bf16_ms']:.2f} ms "
+            f"({m['matmul_fp32_ms'] / m['matmul_bf16_ms']:.1f}x)")
+
+
 def _uptime() -> str:
     try:
         return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
@@ -267,7 +295,7 @@ def describe(name: str, args) -> str:
 
 
 def write_markdown(path: Path, rows: List[dict], args, load_before: str, load_after: str, seconds: float,
-                   cmd: str) -> None:
+                   cmd: str, machine: str = "") -> None:
     lines = ["| path | variant | median wall s (min-max) | median CPU s | speed-up (CPU) | first call s | "
              "out max err | out mean err | grad rel max err | grad rel mean err |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -284,6 +312,7 @@ def write_markdown(path: Path, rows: List[dict], args, load_before: str, load_af
             f"torch {torch.__version__}, threads={torch.get_num_threads()}, repeats={args.repeats} "
             f"(round-robin), warm-up {args.warmup} per variant, {seconds:.0f} s in all.\n\n"
             f"Load before: `{load_before}`  \nLoad after: `{load_after}`\n\n"
+            + (f"Machine: {machine}\n\n" if machine else "")
             + "\n".join(f"- {p}: {describe(p, args)}" for p in args.paths.split(",")) + "\n\n" + table + "\n")
     path.parent.mkdir(parents=True, exist_ok=True)
     begin, end = "<!-- bench:begin -->", "<!-- bench:end -->"
@@ -316,21 +345,22 @@ def main(argv=None) -> None:
     torch.set_num_threads(args.threads)
     variants = args.variants.split(",") + (["autotune", "autotune+bf16"] if args.autotune else [])
     load_before, t0 = _uptime(), time.perf_counter()
-    print(f"threads={torch.get_num_threads()}  {load_before}", flush=True)
+    machine = machine_line()
+    print(f"threads={torch.get_num_threads()}  {load_before}\n{machine}", flush=True)
     rows = []
     for name in args.paths.split(","):
         print(f"{name}: {describe(name, args)}", flush=True)
         rows += bench_path(name, args, variants)
         _print_rows(rows)
         if args.json:                                   # saved path by path: a long run keeps what it has
-            Path(args.json).write_text(json.dumps({"rows": rows, "load_before": load_before,
+            Path(args.json).write_text(json.dumps({"rows": rows, "load_before": load_before, "machine": machine,
                                                    "load_now": _uptime(), "threads": args.threads}, indent=1))
     load_after = _uptime()
     print(f"{load_after}")
     _print_rows(rows)
     if args.out:
         cmd = "python bench/bench_cpu_frontier.py " + " ".join(sys.argv[1:] if argv is None else argv)
-        write_markdown(REPO / args.out, rows, args, load_before, load_after, time.perf_counter() - t0, cmd)
+        write_markdown(REPO / args.out, rows, args, load_before, load_after, time.perf_counter() - t0, cmd, machine)
         print(f"wrote {args.out}")
 
 
