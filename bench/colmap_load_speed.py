@@ -8,8 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 from l3d_app.data.colmap_model import read_model
 
+if len(sys.argv) != 2:  # one line and exit 2, as main.py's usage errors
+    print(f"usage: python bench/colmap_load_speed.py OUT_DIR", file=sys.stderr)
+    sys.exit(2)
 root = Path(sys.argv[1])
 sp = root / "sparse/0"
 sp.mkdir(parents=True, exist_ok=True)

@@ -15,6 +15,9 @@ from l3d_app.data.colmap_export import write_colmap
 from l3d_app.data.captures import split_by_name
 from l3d_app.geometry.cameras import to_opengl_c2w
 from l3d_app.geometry.sampling import sample_points_on_mesh
+if len(sys.argv) != 2:  # one line and exit 2, as main.py's usage errors
+    print(f"usage: python bench/export_builtin_scene.py OUT_DIR", file=sys.stderr)
+    sys.exit(2)
 out = Path(sys.argv[1])
 d = nerf_builtin(cache_dir=str(out / "cache"))
 pc = sample_points_on_mesh(nerf_scene(), 3000, torch.Generator().manual_seed(0), return_colors=True)
