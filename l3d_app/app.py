@@ -13,6 +13,7 @@ The registries fill on import: each package imports its registering modules
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 from pathlib import Path
 from typing import Any, Dict, Optional
@@ -42,6 +43,8 @@ def run(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]:
     except USER_ERRORS as err:
         if debug_enabled():
             raise
+        if out_dir is None:
+            remove_unused_run_dir()
         print(f"l3d_app: error: {one_line(err)}", file=sys.stderr)
         sys.exit(2)
     except RunInterrupted as err:
@@ -108,6 +111,9 @@ def run_task(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]
         logger.text("config", "```\n" + OmegaConf.to_yaml(cfg, resolve=True) + "\n```")
         metrics = ctx.write_metrics(task(cfg, ctx) or {})
         logger.hparams(ctx.params, metrics)
+    except USER_ERRORS:
+        logger.discard_if_at_most(1)      # bad input before anything but the config was logged
+        raise
     finally:
         logger.close()
     if ctx.interrupted:
@@ -131,6 +137,21 @@ def _parallel_thread_budget() -> int:
     except (ImportError, ValueError, AttributeError):
         return 0
     return max(1, (os.cpu_count() or 1) // n_jobs) if n_jobs > 1 else 0
+
+
+def remove_unused_run_dir() -> None:
+    """After bad input: remove Hydra's run directory for this run if it holds nothing but Hydra's
+    own ``.hydra`` folder and an empty ``main.log`` (nothing the run wrote, nothing resumed)."""
+    try:
+        run_dir = _hydra_output_dir()
+    except UserError:
+        return
+    if not run_dir.is_dir():
+        return
+    entries = {p.name: p for p in run_dir.iterdir()}
+    if set(entries) <= {".hydra", "main.log"} and (
+            "main.log" not in entries or entries["main.log"].stat().st_size == 0):
+        shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def _hydra_output_dir() -> Path:

@@ -83,12 +83,12 @@ def test_cli_multirun_writes_one_directory_per_job(tmp_path):
     (["data=builtin", "data.scene=teapot"], "teapot"),
 ])
 def test_cli_bad_input_is_one_clear_line(tmp_path, args, needle):
-    out = main_py(*args, "num_frames=2", "image_size=16", f"hydra.run.dir={tmp_path}")
+    out = main_py(*args, "num_frames=2", "image_size=16", f"hydra.run.dir={tmp_path / 'run'}")
     assert out.returncode == 2, out.stderr
     assert needle in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1, out.stderr
     assert "Traceback" not in out.stderr
-    assert not (tmp_path / "metrics.json").exists()
+    assert not (tmp_path / "run").exists()      # no run directory left behind: nothing was written
 
 
 @pytest.mark.parametrize("args, needle", [

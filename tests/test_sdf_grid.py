@@ -284,3 +284,9 @@ def test_colour_grid_feeds_colour_only():
     (gc,) = torch.autograd.grad(rgb1.sum(), field.color_encoding.table)
     assert gc.abs().sum() > 0
     assert _random_field().color_encoding is None          # off by default: the colour MLP's input unchanged
+
+
+@pytest.mark.parametrize("kw", [{"radius": 0.0}, {"radius": -1.0}, {"fd_step": 0.0}])
+def test_non_positive_radius_or_fd_step_is_a_user_error(kw):
+    with pytest.raises(UserError, match="radius > 0 and fd_step > 0"):
+        SDFGridField(scene_box=BOX, n_levels=2, base_resolution=4, max_resolution=8, log2_hashmap_size=10, **kw)

@@ -134,6 +134,8 @@ class SDFGridField(torch.nn.Module):
         if int(n_layers) < 1 or int(hidden) < 1 or int(color_layers) < 0:
             raise UserError(f"sdf_grid_field needs n_layers >= 1, hidden >= 1, color_layers >= 0, "
                             f"got {n_layers}, {hidden}, {color_layers}")
+        if not float(radius) > 0 or not float(fd_step) > 0:
+            raise UserError(f"sdf_grid_field needs radius > 0 and fd_step > 0 (world units), got {radius}, {fd_step}")
         self.encoding = GridEncoding(n_levels, n_features, base_resolution, max_resolution, log2_hashmap_size,
                                      bounds=scene_box, init_scale=init_scale)
         self.radius, self.n_features = float(radius), int(sdf_features)

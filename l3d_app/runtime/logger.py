@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 from typing import Any, Mapping, Optional
 
 import numpy as np
@@ -32,9 +33,12 @@ class RunLogger:
     def __init__(self, log_dir: os.PathLike, enabled: bool = True):
         self.log_dir = str(log_dir)
         self.start = time.perf_counter()
+        self._events_before = set(Path(self.log_dir).glob("events.out.tfevents.*"))
         self.writer: Optional[SummaryWriter] = SummaryWriter(self.log_dir) if enabled else None
+        self.records = 0          # log calls so far (scalars, images, texts, hparams)
 
     def scalar(self, tag: str, value: float, step: int) -> None:
+        self.records += 1
         if self.writer is not None:
             self.writer.add_scalar(tag, float(value), step)
 
@@ -46,17 +50,20 @@ class RunLogger:
 
     def image(self, tag: str, image, step: int = 0) -> None:
         """One (H, W, 3) float image in [0, 1]."""
+        self.records += 1
         if self.writer is not None:
             self.writer.add_image(tag, to_uint8(image), step, dataformats="HWC")
 
     def image_sequence(self, tag: str, frames, start_step: int = 0) -> None:
         """(N, H, W, 3) frames as one image per step: scrub them with TensorBoard's slider."""
+        self.records += 1
         if self.writer is None:
             return
         for i, frame in enumerate(to_uint8(frames)):
             self.writer.add_image(tag, frame, start_step + i, dataformats="HWC")
 
     def text(self, tag: str, text: str, step: int = 0) -> None:
+        self.records += 1
         if self.writer is not None:
             self.writer.add_text(tag, text, step)
 
@@ -66,6 +73,7 @@ class RunLogger:
         Written into this run's own event file (``SummaryWriter.add_hparams`` would create
         an extra timestamped run per call, which is what we avoid).
         """
+        self.records += 1
         if self.writer is None:
             return
         metrics = {f"final/{k}": float(v) for k, v in metrics.items()
@@ -77,6 +85,18 @@ class RunLogger:
             file_writer.add_summary(summary)
         for tag, value in metrics.items():
             self.writer.add_scalar(tag, value, 0)
+
+    def discard_if_at_most(self, records: int) -> bool:
+        """Close and delete this logger's own event file(s) when it recorded at most ``records``
+        things (a run that failed on bad input before logging more than its config): no empty
+        run in TensorBoard. Files that were in the directory before (a resumed run's) stay.
+        Returns whether it deleted."""
+        if self.records > records:
+            return False
+        self.close()
+        for f in set(Path(self.log_dir).glob("events.out.tfevents.*")) - self._events_before:
+            f.unlink(missing_ok=True)
+        return True
 
     def close(self) -> None:
         if self.writer is not None:
