@@ -20,3 +20,20 @@ def test_nonnegative_accepts_zero_and_positive_and_positive_rejects_zero():
     require_nonnegative(cfg, "w_free", "free_softness")
     with pytest.raises(UserError, match="w_free must be a positive number"):
         require_positive(cfg, "w_free")
+
+
+@pytest.mark.parametrize("task, override, needle", [
+    ("gs_train", "sh_degree=7", "sh_degree must be 0, 1, 2 or 3"),       # used to fail when the schedule reached degree 4
+    ("gs_train", "tile_size=0", "tile_size must be a positive number"),   # used to end in ZeroDivisionError
+    ("volsdf", "eikonal_points=-1", "eikonal_points must be a number >= 0"),  # used to end in a RuntimeError
+    ("volsdf", "mesh_resolution=1", "mesh_resolution must be an integer >= 2"),  # used to fail after training
+    ("volsdf", "level_every=-2", "level_every must be a number >= 0"),
+])
+def test_task_rejects_bad_values_before_loading_data(compose, task, override, needle):
+    """Each check runs at the top of the task, before the data is read or a step is taken."""
+    from l3d_app.registry import TASKS
+    import l3d_app.tasks  # noqa: F401
+
+    cfg = compose(f"task={task}", override, "data=blender", "data.root=/no/such/folder")
+    with pytest.raises(UserError, match=needle):
+        TASKS.get(task)(cfg, None)

@@ -44,8 +44,8 @@ def test_eikonal_loss_is_finite_at_kinks_and_zero_for_exact_sdfs():
     assert float(loss.detach()) == 1.0 and torch.isfinite(gg).all()
     # away from kinks an exact SDF has loss ~0; a scaled one does not
     x = torch.randn(256, 3, dtype=torch.float64) + 2.0
-    assert float(eikonal_loss(sdf_gradient(Sphere(0.5), x))) < 1e-20
-    assert float(eikonal_loss(sdf_gradient(lambda p: 2 * Sphere(0.5)(p), x))) == pytest.approx(1.0)
+    assert float(eikonal_loss(sdf_gradient(Sphere(0.5), x)).detach()) < 1e-20
+    assert float(eikonal_loss(sdf_gradient(lambda p: 2 * Sphere(0.5)(p), x)).detach()) == pytest.approx(1.0)
 
 
 def test_eikonal_through_a_network_has_finite_parameter_gradients():
