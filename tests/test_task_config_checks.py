@@ -37,3 +37,33 @@ def test_task_rejects_bad_values_before_loading_data(compose, task, override, ne
     cfg = compose(f"task={task}", override, "data=blender", "data.root=/no/such/folder")
     with pytest.raises(UserError, match=needle):
         TASKS.get(task)(cfg, None)
+
+
+@pytest.mark.parametrize("override, needle", [
+    ("time_budget=-1", "time_budget must be a number >= 0"),
+    ("turntable_size=-1", "turntable_size must be a number >= 0"),   # train_nerf used to fail after training
+    ("fps=0", "fps must be a positive number"),
+    ("eval_views=-1", "eval_views must be a number >= 0"),
+])
+def test_shared_run_keys_are_checked_before_the_task_starts(compose, tmp_path, override, needle):
+    from l3d_app.app import run_task
+
+    cfg = compose("task=train_nerf", override, "data=blender", "data.root=/no/such/folder")
+    with pytest.raises(UserError, match=needle):
+        run_task(cfg, out_dir=tmp_path)
+    assert not list(tmp_path.glob("events.out.tfevents.*"))     # failed before the logger was made
+
+
+@pytest.mark.parametrize("task, override, needle", [
+    ("fit_mesh", "w_chamfer=-1", "w_chamfer must be a number >= 0"),       # used to train, maximising chamfer
+    ("fit_mesh", "lr_final=-1", "lr_final must be a number >= 0"),
+    ("train_nerf", "mesh_resolution=1", "mesh_resolution must be an integer >= 2"),   # with extract_mesh: after training
+])
+def test_fit_weights_and_nerf_mesh_resolution_are_checked_up_front(compose, task, override, needle):
+    from l3d_app.registry import TASKS
+    import l3d_app.tasks  # noqa: F401
+
+    extra = ["extract_mesh=true", "data=blender", "data.root=/no/such/folder"] if task == "train_nerf" else []
+    cfg = compose(f"task={task}", override, *extra)
+    with pytest.raises(UserError, match=needle):
+        TASKS.get(task)(cfg, None)

@@ -27,6 +27,27 @@ def require_nonnegative(cfg, *keys: str) -> None:
             raise UserError(f"{key} must be a number >= 0, got {value!r}")
 
 
+def require_mesh_resolution(cfg) -> None:
+    """UserError unless ``cfg.mesh_resolution`` is an integer >= 2 (marching-cubes cells per
+    axis): checked before training, since the mesh is extracted after it."""
+    value = cfg.get("mesh_resolution")
+    if isinstance(value, bool) or not isinstance(value, int) or value < 2:
+        raise UserError(f"mesh_resolution must be an integer >= 2 (marching-cubes cells per axis), got {value!r}")
+
+
+RUN_KEYS_NONNEGATIVE = ("time_budget", "reserve", "gif_frames", "turntable_size", "eval_views", "checkpoint_every")
+"""Run and output knobs that many tasks share, where 0 means none / off / the default and a
+negative value means nothing."""
+RUN_KEYS_POSITIVE = ("fps",)
+
+
+def require_run_keys(cfg) -> None:
+    """Check the shared run / output knobs a task's config has (``RUN_KEYS_*``) before the task
+    starts, so a bad turntable size or frame rate fails now, not after training."""
+    require_nonnegative(cfg, *(k for k in RUN_KEYS_NONNEGATIVE if k in cfg))
+    require_positive(cfg, *(k for k in RUN_KEYS_POSITIVE if k in cfg))
+
+
 @torch.no_grad()
 def render_frames(renderer, mesh, cams: Cameras, batch: int, desc: str,
                   keys=("image", "alpha", "depth")) -> Dict[str, torch.Tensor]:

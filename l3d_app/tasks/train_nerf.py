@@ -33,7 +33,7 @@ from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.precision import maybe_compile
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import background_parameter, require_positive
+from l3d_app.tasks.common import background_parameter, require_mesh_resolution, require_positive
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
                                         turntable_width)
 
@@ -42,6 +42,8 @@ from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, eva
 def train_nerf(cfg, ctx) -> dict:
     """Train on the train views, validate on val, test once; write the gif / metrics (/ mesh)."""
     require_positive(cfg, "iters", "batch_rays", "chunk", "eval_every")
+    if bool(cfg.extract_mesh):
+        require_mesh_resolution(cfg)
     data = DATASETS.build(cfg.data).to(ctx.device)
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)

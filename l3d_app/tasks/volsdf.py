@@ -82,8 +82,8 @@ from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.errors import UserError
-from l3d_app.tasks.common import background_parameter, require_nonnegative, require_positive
+from l3d_app.tasks.common import (background_parameter, require_mesh_resolution, require_nonnegative,
+                                 require_positive)
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
                                         turntable_width)
 
@@ -95,8 +95,7 @@ def volsdf(cfg, ctx) -> dict:
     require_nonnegative(cfg, "w_free", "free_softness", "eikonal_points", "gif_frames", "eval_views",
                         "cache_resolution", "pretrain_steps", "checkpoint_every", "warmup_steps", "level_every")
     require_positive(cfg, "cache_every")
-    if not isinstance(cfg.get("mesh_resolution"), int) or cfg.mesh_resolution < 2:   # before training, not after it
-        raise UserError(f"mesh_resolution must be an integer >= 2 (marching-cubes cells per axis), got {cfg.get('mesh_resolution')!r}")
+    require_mesh_resolution(cfg)
     data = DATASETS.build(cfg.data).to(ctx.device)
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
