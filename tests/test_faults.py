@@ -65,6 +65,4 @@ def test_bad_data_folders_exit_2_with_one_line(tmp_path):
         out = main_py(*args, f"hydra.run.dir={tmp_path / 'run'}")
         assert out.returncode == 2, out.stderr
         assert len(out.stderr.strip().splitlines()) == 1 and "Traceback" not in out.stderr
-        assert not (tmp_path / "run" / "metrics.json").exists()
-    assert os.listdir(tmp_path / "run") in ([], [".hydra"]) or not any(
-        p.endswith((".gif", ".png", ".pt")) for p in os.listdir(tmp_path / "run"))
+        assert not (tmp_path / "run").exists()       # nothing written: the run directory is removed too
