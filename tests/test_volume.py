@@ -313,7 +313,7 @@ def test_render_rays_matches_a_naive_float64_loop_in_values_and_gradients(kind):
     torch.testing.assert_close(out["depth"], ref_d, atol=1e-12, rtol=1e-10)
     torch.testing.assert_close(out["opacity"], ref_o, atol=1e-12, rtol=1e-10)
     torch.testing.assert_close(g, ref_g, atol=1e-10, rtol=1e-9)
-    assert float(out["opacity"].detach().max()) > 0.5 and float(out["opacity"][0]) == 0.0   # the blob is seen; a miss
+    assert float(out["opacity"].detach().max()) > 0.5 and float(out["opacity"][0].detach()) == 0.0   # the blob is seen; a miss
     assert (rays == 0).sum() == 0                                                  # no samples for the miss
     if kind == "occupancy":
         dense = StratifiedEstimator(32, scene_box=box).sampling(o, d, perturb=True,
