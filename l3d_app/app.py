@@ -29,6 +29,7 @@ from l3d_app.runtime.device import resolve_device
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.precision import check_precision
 from l3d_app.runtime.seed import seed_everything
+from l3d_app.tasks.common import require_run_keys
 
 
 def run(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]:
@@ -94,8 +95,6 @@ def run_task(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]
                         f"e.g. {missing[0]}=...")
     load_registries()
     task = TASKS.get(str(cfg.task_name))
-    from l3d_app.tasks.common import require_run_keys
-
     require_run_keys(cfg)
     precision = check_precision(str(cfg.get("precision", "fp32")))
     out_dir = Path(out_dir) if out_dir is not None else _hydra_output_dir()

@@ -32,7 +32,7 @@ from l3d_app.render.gaussians_panels import colorize_depth, depth_range, error_m
 from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import background_parameter, require_nonnegative, require_positive
+from l3d_app.tasks.common import background_parameter, require_positive
 
 
 def _initial_model(cfg, raw, data, generator):
@@ -64,7 +64,6 @@ def _initial_model(cfg, raw, data, generator):
 def gs_train(cfg, ctx) -> dict:
     """Train Gaussians; val figures during training, test figures once; gifs / ply / metrics."""
     require_positive(cfg, "iters", "eval_every", "sh_every", "lr_decay_steps", "tile_size", "log_every")
-    require_nonnegative(cfg, "checkpoint_every")
     if cfg.get("sh_degree") not in (0, 1, 2, 3):      # checked now, not when the schedule reaches it mid-run
         raise UserError(f"sh_degree must be 0, 1, 2 or 3, got {cfg.get('sh_degree')!r}")
     raw = DATASETS.build(cfg.data)

@@ -92,8 +92,8 @@ from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, eva
 def volsdf(cfg, ctx) -> dict:
     """Train on the train views, validate on val, test once; surface scores, gifs, mesh, metrics."""
     require_positive(cfg, "iters", "batch_rays", "chunk", "supersample", "val_supersample", "eval_every")
-    require_nonnegative(cfg, "w_free", "free_softness", "eikonal_points", "gif_frames", "eval_views",
-                        "cache_resolution", "pretrain_steps", "checkpoint_every", "warmup_steps", "level_every")
+    require_nonnegative(cfg, "w_free", "free_softness", "eikonal_points", "cache_resolution", "pretrain_steps",
+                        "warmup_steps", "level_every")     # the shared run knobs: app.run_task (require_run_keys)
     require_positive(cfg, "cache_every")
     require_mesh_resolution(cfg)
     data = DATASETS.build(cfg.data).to(ctx.device)
