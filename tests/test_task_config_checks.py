@@ -67,3 +67,18 @@ def test_fit_weights_and_nerf_mesh_resolution_are_checked_up_front(compose, task
     cfg = compose(f"task={task}", override, *extra)
     with pytest.raises(UserError, match=needle):
         TASKS.get(task)(cfg, None)
+
+
+@pytest.mark.parametrize("task, override, needle", [
+    ("neural_sdf", "w_offsurface=-1", "w_offsurface must be a number >= 0"),   # used to train, rewarding the loss
+    ("neural_sdf", "init_radius=-1", "init_radius must be a positive number"),
+    ("neural_sdf", "mesh_resolution=-1", "mesh_resolution must be an integer >= 2"),
+    ("neural_sdf", "val_fraction=1.5", "val_fraction must be in"),
+    ("sphere_trace", "inexact_step_scale=-1", "inexact_step_scale must be a positive number"),
+])
+def test_neural_sdf_and_sphere_trace_check_their_knobs(compose, task, override, needle):
+    from l3d_app.registry import TASKS
+    import l3d_app.tasks  # noqa: F401
+
+    with pytest.raises(UserError, match=needle):
+        TASKS.get(task)(compose(f"task={task}", override), None)

@@ -40,12 +40,17 @@ from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint, randperm
 from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.common import require_positive
+from l3d_app.tasks.common import require_mesh_resolution, require_nonnegative, require_positive
 
 
 @TASKS.register("neural_sdf")
 def neural_sdf(cfg, ctx) -> dict:
-    require_positive(cfg, "iters", "batch_points", "lr")
+    require_positive(cfg, "iters", "batch_points", "lr", "offsurface_scale", "init_radius", "eval_every",
+                     "eval_points", "f1_threshold")
+    require_nonnegative(cfg, "w_eikonal", "w_offsurface", "bounds_padding")
+    require_mesh_resolution(cfg)
+    if not 0.0 <= float(cfg.val_fraction) < 1.0:
+        raise UserError(f"val_fraction must be in [0, 1), got {cfg.val_fraction!r}")
     cloud = DATASETS.build(cfg.data)
     points = cloud.points if isinstance(cloud, PointCloud) else torch.as_tensor(cloud)
     points = points.float().to(ctx.device)

@@ -21,7 +21,7 @@ from l3d_app.render.diagnostics import depth_colormap
 from l3d_app.render.sphere_tracing import render_sdf_shaded, sphere_trace_box
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.progress import progress
-from l3d_app.tasks.common import require_positive
+from l3d_app.tasks.common import require_nonnegative, require_positive
 
 _SDF_KEYS = ("major_radius", "minor_radius", "radii", "exponents", "radius", "size")
 
@@ -38,7 +38,8 @@ def _analytic_sdf(data_cfg):
 @TASKS.register("sphere_trace")
 def sphere_trace_task(cfg, ctx) -> dict:
     """Trace and shade every frame of the turntable; write the gif, depth picture and metrics."""
-    require_positive(cfg, "image_size", "num_frames", "fps", "max_iters", "eps")
+    require_positive(cfg, "image_size", "num_frames", "fps", "max_iters", "eps", "inexact_step_scale")
+    require_nonnegative(cfg, "box_padding")
     sdf = _analytic_sdf(cfg.data)
     lo, hi = sdf.bounds()
     pad = float(cfg.box_padding)
