@@ -82,3 +82,15 @@ def test_neural_sdf_and_sphere_trace_check_their_knobs(compose, task, override, 
 
     with pytest.raises(UserError, match=needle):
         TASKS.get(task)(compose(f"task={task}", override), None)
+
+
+@pytest.mark.parametrize("override, needle", [
+    ("eval_points=-1", "eval_points must be a positive number"),
+    ("regulariser_weight=-1", "regulariser_weight must be a number >= 0"),    # used to train, rewarding it
+    ("test_points=-1", "test_points must be a number >= 0"),
+])
+def test_pointnet_training_knobs_are_checked(compose, override, needle):
+    from l3d_app.tasks.point_common import check_train_knobs
+
+    with pytest.raises(UserError, match=needle):
+        check_train_knobs(compose("task=pointnet_cls", override))

@@ -48,7 +48,7 @@ from l3d_app.runtime import distributed
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import require_positive
+from l3d_app.tasks.common import require_nonnegative, require_positive
 
 BEST = "best.pt"
 
@@ -174,7 +174,11 @@ def evaluate(model, split: PointSplit, kind: str, device, num_points: int = 0, s
 # ----------------------------------------------------------------------------- training
 
 def check_train_knobs(cfg) -> None:
-    require_positive(cfg, "batch_size", "lr", "train_points", "eval_every_epochs")
+    """Sizes and rates > 0; counts where 0 means all / off (``test_points``, checkpoints), the
+    augmentation amounts and the weights >= 0 (a negative regulariser weight would reward it)."""
+    require_positive(cfg, "batch_size", "lr", "train_points", "eval_every_epochs", "eval_points", "eval_batch_points")
+    require_nonnegative(cfg, *(k for k in ("test_points", "checkpoint_every_epochs", "augment_degrees", "jitter",
+                                           "regulariser_weight", "weight_decay", "num_vis", "vis_points") if k in cfg))
     if cfg.get("iters") is None:
         require_positive(cfg, "epochs")
 
