@@ -108,3 +108,18 @@ def test_warmup_cosine_schedule_values():
     assert warmup_cosine(10, 0, 100, 1.0)(99) == 1.0                            # constant after warm-up
     g = warmup_cosine(100, 0, 999, 0.05)                                         # decay already during warm-up
     assert g(99) == 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * 99 / 999)) < 1.0
+
+
+def test_a_stage_without_checkpoint_writes_none_and_logs_under_its_prefix(tmp_path):
+    """checkpoint=False (a stage before the task's own loop): no checkpoint.pt read or written,
+    the step logs under ``log_prefix``; it still converges."""
+    ctx = make_ctx(tmp_path)
+    model, trainable = make_problem()
+    seen = []
+    ctx.logger.log_scalars = lambda values, step: seen.extend(values)
+    result = train(ctx, trainable, regression_step(ctx, model), iters=300, checkpoint_every=50,
+                   log_prefix="stage", checkpoint=False)
+    assert result.step == 300 and not (tmp_path / CHECKPOINT).exists()
+    assert float((model.weight.detach() - torch.tensor([[1.0, -2.0, 0.5]])).abs().max()) < 0.05
+    assert "stage/loss" in seen and "stage/step_ms" in seen
+    assert not any(k.startswith("train/") or k.startswith("time/") for k in seen)

@@ -194,7 +194,8 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
           max_bad_steps: int = 5, desc: str = "train", log_every: int = 10,
           after_step: Optional[Callable[[int], None]] = None,
           time_budget: Optional[float] = None, reserve: Optional[float] = None,
-          reserve_evals: float = 0.0, horizon: Optional[Horizon] = None) -> TrainResult:
+          reserve_evals: float = 0.0, horizon: Optional[Horizon] = None, log_prefix: str = "train",
+          checkpoint: bool = True) -> TrainResult:
     """Run ``iters`` optimisation steps.
 
     Args:
@@ -225,6 +226,10 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
             step with its prediction of the last step the budget lets it run (periodic
             evaluations, the final one, ``reserve_evals`` and ``reserve`` included), so the
             task's schedules can end where the run ends. Untouched without a budget.
+        log_prefix: TensorBoard tag prefix of the step logs (a stage before the task's own
+            training logs under its own name).
+        checkpoint: False: no ``checkpoint.pt`` is written or read (a stage whose result the
+            task keeps itself); ``resume`` and ``checkpoint_every`` are then ignored.
 
     ``step_fn`` runs under ``autocast(ctx.precision, ctx.device)`` (the ``precision=`` knob:
     ``fp32`` does nothing, ``bf16`` autocasts the forward); backward and the optimiser step
@@ -234,7 +239,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
     ckpt_path = ctx.out_dir / CHECKPOINT
     history: Dict[str, Any] = {"eval": []}
     start = 0
-    if resume and ckpt_path.exists():
+    if checkpoint and resume and ckpt_path.exists():
         state = load_checkpoint(ckpt_path, trainable, ctx.generator)
         start, history = int(state["step"]), state["history"]
         ctx.logger.text("train/resume", f"resumed from step {start}")
@@ -285,9 +290,9 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                     after_step(step)
             clock.add_step(time.perf_counter() - t0)
             if ok and (step % log_every == 0 or step == iters - 1):
-                values = {f"train/{k}": float(v.detach()) for k, v in logs.items()
+                values = {f"{log_prefix}/{k}": float(v.detach()) for k, v in logs.items()
                           if torch.is_tensor(v) and v.numel() == 1}
-                values["time/step_ms"] = 1000.0 * clock.last_step
+                values["time/step_ms" if log_prefix == "train" else f"{log_prefix}/step_ms"] = 1000.0 * clock.last_step
                 ctx.logger.log_scalars(values, step)
                 bar.set_postfix(loss=f"{float(loss.detach()):.4g}")
             done = step + 1
@@ -295,7 +300,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                 metrics = clock.timed_eval(lambda: _evaluate(ctx, eval_fn, done, history))
             if ok and done % snapshot_every == 0:
                 good_state = copy.deepcopy(trainable.state_dict())
-            if checkpoint_every and done % checkpoint_every == 0:
+            if checkpoint and checkpoint_every and done % checkpoint_every == 0:
                 save_checkpoint(ckpt_path, trainable, done, ctx.generator, history)
             if stop_at is not None and done == stop_at:
                 stop.signal = signal.SIGINT  # test hook: behave as if interrupted here
@@ -313,7 +318,8 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
     interrupted = stop.signal is not None and done < iters
     if eval_fn is not None and (not history["eval"] or history["eval"][-1][0] != done):
         metrics = clock.timed_eval(lambda: _evaluate(ctx, eval_fn, done, history))
-    save_checkpoint(ckpt_path, trainable, done, ctx.generator, history)
+    if checkpoint:
+        save_checkpoint(ckpt_path, trainable, done, ctx.generator, history)
     if interrupted:
         ctx.interrupted = True
         ctx.logger.text("train/interrupted", f"stopped by signal {stop.signal} at step {done}")
