@@ -28,6 +28,11 @@ def test_nonnegative_accepts_zero_and_positive_and_positive_rejects_zero():
     ("volsdf", "eikonal_points=-1", "eikonal_points must be a number >= 0"),  # used to end in a RuntimeError
     ("volsdf", "mesh_resolution=1", "mesh_resolution must be an integer >= 2"),  # used to fail after training
     ("volsdf", "level_every=-2", "level_every must be a number >= 0"),
+    ("volsdf", "free_space.opacity=1.5", "free_space.opacity must lie in"),
+    ("volsdf", "free_space.margin=-0.1", "free_space.margin must be a number >= 0"),
+    ("volsdf", "free_space.points=0", "free_space.points must be a positive number"),
+    ("volsdf", "free_space.loss=inside", "free_space.loss must be occupancy, density or outside"),
+    ("volsdf", "free_space.until=0", "free_space.until must be null or lie in"),
 ])
 def test_task_rejects_bad_values_before_loading_data(compose, task, override, needle):
     """Each check runs at the top of the task, before the data is read or a step is taken."""

@@ -32,6 +32,12 @@
   ``optim=warmup_cosine`` (Adam eps 1e-15, ``warmup_steps`` linear warm-up then cosine decay to
   ``lr * lr_final_ratio``).
   ``pixel_jitter=true`` sends each training ray through a random point of its pixel.
+* known free space (``free_space.steps`` > 0): a short radiance-field fit first
+  (:mod:`~l3d_app.tasks.free_space_common`) marks, on each training ray, the stretch before its
+  opacity reaches ``free_space.opacity`` (less ``free_space.margin``); each step adds
+  ``free_space.weight`` x a loss at ``free_space.points`` points drawn on those stretches (what a
+  ray passes through before any surface is empty; :func:`free_space_loss`), the weight falling
+  linearly to 0 at ``free_space.until`` x iters when that is set.
 * evaluation renders average ``supersample``^2 rays per pixel (the images are SSAA renders).
 
 Evaluation: every ``eval_every`` steps on the VALIDATION views (PSNR / SSIM and a
@@ -62,6 +68,7 @@ from typing import Dict, Tuple
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.rays import camera_rays, pixel_axes
 from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
 from l3d_app.losses.free_space import occupied_fraction, occupied_volume
@@ -86,6 +93,7 @@ from l3d_app.tasks.common import (background_parameter, require_mesh_resolution,
                                  require_positive)
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
                                         turntable_width)
+from l3d_app.tasks.free_space_common import check_free_space_config, fit_free_rays
 
 
 @TASKS.register("volsdf")
@@ -96,6 +104,10 @@ def volsdf(cfg, ctx) -> dict:
                         "warmup_steps", "level_every")     # the shared run knobs: app.run_task (require_run_keys)
     require_positive(cfg, "cache_every")
     require_mesh_resolution(cfg)
+    check_free_space_config(cfg.free_space)
+    if int(cfg.free_space.steps) > 0 and str(cfg.free_space.loss) != "outside" and str(cfg.density.name) != "volsdf":
+        raise UserError(f"free_space.loss={cfg.free_space.loss} needs density=volsdf (a density per point), got density="
+                        f"{cfg.density.name}: use free_space.loss=outside")
     data = DATASETS.build(cfg.data).to(ctx.device)
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
@@ -124,6 +136,14 @@ def volsdf(cfg, ctx) -> dict:
     n_rays, batch = flat_o.shape[0], int(cfg.batch_rays)
     lo, hi = torch.tensor(box[0], device=ctx.device), torch.tensor(box[1], device=ctx.device)
     field_fn = field_with_gradient(model)
+    free, w_carve = None, float(cfg.free_space.weight)
+    if int(cfg.free_space.steps) > 0 and w_carve > 0:     # what the training rays pass through, from a radiance field
+        with ctx.stopwatch.stage("free_space"):
+            free = fit_free_rays(cfg.free_space, ctx, data, box, flat_o, torch.nn.functional.normalize(flat_d, dim=-1),
+                                 flat_rgb, cfg.learn_background, float(cfg.time_budget),
+                                 bool(cfg.resume) and (ctx.out_dir / "checkpoint.pt").exists())
+        if free is None:     # interrupted during the stage: nothing trained yet
+            return {"interrupted_in": "free_space"}
     stats = {"samples_per_ray": 0.0, "fine_samples_per_ray": 0.0, "train_seconds": 0.0, "cpu_seconds": 0.0,
              "steps": 0}
 
@@ -162,6 +182,12 @@ def volsdf(cfg, ctx) -> dict:
                 soft = float(cfg.free_softness)
                 occ = occupied_fraction(f_box, soft) if soft > 0 else occupied_volume(f_box)
                 loss, logs["free_prior"] = loss + float(cfg.w_free) * occ, occ.detach()
+        w_now = w_carve * free_space_fade(nominal / max(int(cfg.iters), 1), cfg.free_space.get("until"))
+        if free is not None and len(free) and w_now > 0:   # points some training ray passes before any surface
+            pts, length = free.sample(int(cfg.free_space.points), ctx.generator)
+            f_free = model.sdf(pts)
+            carve = free_space_loss(str(cfg.free_space.loss), f_free, length, dens)
+            loss, logs["free_space"] = loss + w_now * carve, carve.detach()
         stats["samples_per_ray"] = float(out["samples_per_ray"])
         stats["fine_samples_per_ray"] = float(out["fine_samples_per_ray"])
         return {**logs, "loss": loss}
@@ -220,6 +246,8 @@ def volsdf(cfg, ctx) -> dict:
         "beta": float(cfg.beta), "iters": result.step, "n_params": sum(p.numel() for p in model.parameters()),
         "train_seconds": round(stats["train_seconds"], 4), "mesh_seconds": round(ctx.stopwatch.stages["mesh"], 4),
         "gif_seconds": round(ctx.stopwatch.stages.get("gifs", 0.0), 4),
+        "free_space_seconds": round(ctx.stopwatch.stages.get("free_space", 0.0), 4),
+        "free_space_rays": 0 if free is None else len(free),
         "samples_per_ray": round(stats["samples_per_ray"], 3),
         "fine_samples_per_ray": round(stats["fine_samples_per_ray"], 3),
         "rays_per_second": round(stats["steps"] * batch / max(stats["train_seconds"], 1e-9), 1),
@@ -230,6 +258,25 @@ def volsdf(cfg, ctx) -> dict:
         "background": [round(float(c), 4) for c in background["rgb"].detach().clamp(0, 1)],
     })
     return metrics
+
+
+def free_space_fade(progress: float, until) -> float:
+    """The free-space weight's factor at ``progress`` (nominal step / iters): 1 throughout when
+    ``until`` is None, else falling linearly from 1 at the start to 0 at ``until``."""
+    if until is None:
+        return 1.0
+    return max(0.0, 1.0 - float(progress) / float(until))
+
+
+def free_space_loss(kind: str, f: torch.Tensor, length: torch.Tensor, density) -> torch.Tensor:
+    """The loss at (N,) SDF values ``f`` of points on known-free stretches of (N,) ``length``
+    (world units): ``outside`` mean(relu(-f)); ``density`` the mean optical depth of a stretch
+    (density(f) x length, 1-point estimate); ``occupancy`` the same over alpha (Psi_beta(-f) x length:
+    as strong as ``density`` early, weaker as beta anneals)."""
+    if kind == "outside":
+        return occupied_volume(f)
+    tau = density(f) * length
+    return tau.mean() if kind == "density" else (tau / density.alpha).mean()
 
 
 def sdf_and_gradient_at(model, points: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:

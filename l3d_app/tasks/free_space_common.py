@@ -1,0 +1,96 @@
+"""A short radiance-field fit before a surface task: which stretch of each training ray is empty.
+
+``volsdf`` with ``free_space.steps`` > 0 calls :func:`fit_free_rays` before its own training: a
+``free_space.model`` radiance field (default ``grid_field``) sampled by ``free_space.sampler``
+(default ``occupancy``) is fitted to the training pixels for ``free_space.steps`` steps of
+``free_space.batch_rays`` rays (colour MSE, ``free_space.optim``) through the shared training loop
+(TensorBoard ``free_space/*``, no checkpoint), then every training ray is rendered once and its free
+segment kept (at most ``free_space.max_rays`` of them, a random subset: the read-off renders each
+once): from the box entry to where the field's accumulated opacity first reaches
+``free_space.opacity``, less ``free_space.margin`` (world units)
+(:class:`~l3d_app.render.free_space.FreeRays`). The rays' indices and distances are saved to ``free_space.pt``
+in the run directory, so ``resume=true`` does not fit them again. The stage stops early at a third of a
+``time_budget`` (the task's own loop then has the rest).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+import torch
+
+from l3d_app.errors import UserError
+from l3d_app.registry import MODELS, SAMPLERS
+from l3d_app.render.free_space import FreeRays, free_distances
+from l3d_app.render.radiance import render_field_rays
+from l3d_app.runtime.optim import build_optimizer
+from l3d_app.runtime.random import randint, randperm
+from l3d_app.runtime.training import Trainable, train
+from l3d_app.tasks.common import background_parameter, require_nonnegative, require_positive
+
+FILE = "free_space.pt"
+
+
+def check_free_space_config(cfg) -> None:
+    """One line, exit 2, before any data is read: the stage's knobs (``cfg`` = ``free_space``)."""
+    named = {f"free_space.{k}": cfg.get(k) for k in ("steps", "batch_rays", "opacity", "margin", "points",
+                                                      "weight", "chunk")}
+    named["free_space.max_rays"] = cfg.get("max_rays")
+    require_nonnegative(named, "free_space.steps", "free_space.margin", "free_space.weight", "free_space.max_rays")
+    require_positive(named, "free_space.batch_rays", "free_space.points", "free_space.chunk", "free_space.opacity")
+    if str(cfg.get("loss")) not in ("occupancy", "density", "outside"):
+        raise UserError(f"free_space.loss must be occupancy, density or outside, got {cfg.get('loss')!r}")
+    until = cfg.get("until")
+    if until is not None and (isinstance(until, bool) or not isinstance(until, (int, float)) or not 0 < until <= 1):
+        raise UserError(f"free_space.until must be null or lie in (0, 1] (a fraction of the steps), got {until!r}")
+    if float(cfg.opacity) > 1.0:
+        raise UserError(f"free_space.opacity must lie in (0, 1] (an accumulated opacity), got {cfg.opacity}")
+
+
+def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor, colors: torch.Tensor,
+                  learn_background, time_budget: float, resume: bool) -> Optional[FreeRays]:
+    """Fit the stage's radiance field to the training rays (``origins``, unit ``dirs``, ``colors``
+    (R, 3)) and return their free segments; None when interrupted. ``cfg`` = ``free_space``;
+    ``learn_background`` as the task's (one RGB behind the box when the data does not know it)."""
+    path = ctx.path(FILE)
+    if resume and path.exists():     # the fitted run's rays and their distances
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+        keep = saved["index"].to(ctx.device)
+        return FreeRays.from_distances(origins[keep], dirs[keep], saved["distance"].to(ctx.device), box,
+                                       float(cfg.margin))
+    t_start = time.perf_counter()
+    model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
+    sampler = SAMPLERS.build(cfg.sampler, scene_box=box).to(ctx.device)
+    background = background_parameter(learn_background, data)
+    params = list(model.parameters()) + ([background["rgb"]] if background["rgb"].requires_grad else [])
+    opt, scheds = build_optimizer(cfg.optim, params, int(cfg.steps))
+    trainable = Trainable({"field": model, "background": background}, opt, extra={"sampler": sampler},
+                          schedulers=scheds)
+    n, batch = origins.shape[0], int(cfg.batch_rays)
+
+    def step_fn(step: int):
+        sampler.update(step, model, ctx.generator)
+        idx = randint(0, n, (batch,), ctx.generator, ctx.device)
+        out = render_field_rays(model, origins[idx], dirs[idx], sampler, perturb=True, generator=ctx.generator,
+                                background=background["rgb"].clamp(0, 1))
+        return {"loss": ((out["color"] - colors[idx]) ** 2).mean(), "samples_per_ray": out["samples_per_ray"]}
+
+    result = train(ctx, trainable, step_fn, int(cfg.steps), desc="free space (radiance field)",
+                   time_budget=time_budget / 3.0 if time_budget > 0 else 0.0, reserve=0.0,
+                   log_prefix="free_space", checkpoint=False)
+    if result.interrupted:
+        return None
+    model.eval()
+    keep = torch.arange(n, device=ctx.device)
+    if 0 < int(cfg.max_rays) < n:    # a random subset of the rays: the read-off costs a render of each
+        keep = torch.sort(randperm(n, ctx.generator, ctx.device)[: int(cfg.max_rays)])[0]
+    with torch.no_grad():
+        sampler.update(result.step, model, ctx.generator, force=True)
+        dist = free_distances(model, sampler, origins[keep], dirs[keep], float(cfg.opacity), int(cfg.chunk))
+    free = FreeRays.from_distances(origins[keep], dirs[keep], dist, box, float(cfg.margin))
+    torch.save({"index": keep.cpu(), "distance": dist.cpu()}, path)
+    ctx.logger.text("free_space", f"radiance field: {result.step} steps; {len(free)} of {len(keep)} training rays "
+                                  f"have a free segment, mean length {float((free.far - free.near).mean()):.3f}; "
+                                  f"{time.perf_counter() - t_start:.1f} s")
+    return free

@@ -1,0 +1,97 @@
+"""volsdf's free-space stage end to end on the built-in scene (tiny): the free stretches it reads
+off its radiance field stop at the TRUE surface (the scene's mesh, rendered independently by
+true_depth_maps), not before it by much and not beyond it; bad settings fail up front."""
+
+import pytest
+import torch
+
+from l3d_app.app import run_task
+from l3d_app.errors import UserError
+from l3d_app.geometry.rays import camera_rays
+from l3d_app.registry import DATASETS, TASKS
+from l3d_app.render.rgbd import true_depth_maps
+
+TINY = ["data.image_size=64", "data.n_train=48", "data.n_val=2", "data.n_test=2", "data.antialias=1",
+        "tensorboard=false", "threads=1"]
+
+
+def test_free_stretches_end_at_the_true_surface(compose, tmp_path):
+    """Built-in scene at 64 px, 300 stage steps. Measured when written: 5.2% of the covered pixels'
+    stretches end more than 0.02 inside the true solid (a bright object over the white background,
+    which the radiance field leaves partly transparent), the median stretch ends 0.044 in front of
+    the surface (0.05 of it the margin), 99.9% of the empty pixels are free through the box."""
+    from l3d_app.geometry.point_mesh_distance import point_mesh_distance
+
+    cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=20", "eval_every=20",
+                  "pretrain_steps=20", "free_space.steps=300", "gif_frames=0", "mesh_resolution=32",
+                  "eval_points=1000", "before_after=false")
+    run_task(cfg, out_dir=tmp_path / "run")
+    saved = torch.load(tmp_path / "run" / "free_space.pt")          # every training pixel (under max_rays)
+    dist = saved["distance"]                                         # (R,) along unit rays
+    assert torch.equal(saved["index"], torch.arange(dist.shape[0]))
+    data = DATASETS.build(cfg.data)
+    cams = data.cameras[data.train]
+    truth = true_depth_maps(data.mesh, cams, scale=1).reshape(-1)  # camera-Z depth, +inf where no surface
+    o, d = camera_rays(cams, normalize=False)                      # camera Z = 1: |d| converts t to Z
+    norm = d.reshape(-1, 3).norm(dim=-1)
+    end_t = dist - float(cfg.free_space.margin)
+    hit = torch.isfinite(truth)
+    past = hit & (end_t / norm > truth) & torch.isfinite(end_t)     # the stretch ends behind the first surface ...
+    ends = o.reshape(-1, 3)[past] + end_t[past, None] * d.reshape(-1, 3)[past] / norm[past, None]
+    through = (hit & torch.isinf(end_t)).sum()                       # (or never ends: free through the solid)
+    inside = ((point_mesh_distance(ends, data.mesh).distance > 0.02).sum() + through) / hit.sum()   # ... deep in it
+    short = (truth[hit] - end_t[hit] / norm[hit]).median()
+    empty = torch.isinf(dist[~hit]).float().mean()
+    assert inside < 0.08           # free stretches that cut into the true solid
+    assert 0.0 < short < 0.12      # where the surface is, the stretch reaches close to it (margin 0.05)
+    assert empty > 0.95            # rays that meet no surface are free through the box
+
+
+def test_resume_reads_the_saved_stretches_instead_of_fitting_again(tmp_path):
+    from types import SimpleNamespace
+
+    from omegaconf import OmegaConf
+
+    from l3d_app.tasks.free_space_common import fit_free_rays
+
+    torch.save({"index": torch.tensor([0, 2]), "distance": torch.tensor([3.2, float("inf")])}, tmp_path / "free_space.pt")
+    ctx = SimpleNamespace(path=lambda name: tmp_path / name, device=torch.device("cpu"))
+    o = torch.tensor([[-3.0, 0.0, 0.0], [-3.0, 9.0, 0.0], [-3.0, 0.5, 0.0]])
+    d = torch.tensor([[1.0, 0.0, 0.0]] * 3)
+    box = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    free = fit_free_rays(OmegaConf.create({"margin": 0.05}), ctx, None, box, o, d, None, "auto", 0.0, resume=True)
+    torch.testing.assert_close(free.origins, o[[0, 2]])
+    torch.testing.assert_close(free.near, torch.tensor([2.0, 2.0]))
+    torch.testing.assert_close(free.far, torch.tensor([3.15, 4.0]))
+
+
+def test_density_loss_needs_the_volsdf_density(compose):
+    import l3d_app.tasks  # noqa: F401
+    cfg = compose("task=volsdf", "density=neus", "free_space.steps=10", "data=blender", "data.root=/no/such/folder")
+    with pytest.raises(UserError, match="free_space.loss=occupancy needs density=volsdf"):
+        TASKS.get("volsdf")(cfg, None)
+
+
+def test_free_space_losses_against_the_laplace_cdf_by_hand():
+    """Psi_beta(-f) = 0.5 exp(-f / beta) outside, 1 - 0.5 exp(f / beta) inside (VolSDF), written out
+    here; occupancy = mean(Psi x length), density = alpha x that (alpha = 1 / beta), outside = mean(relu(-f))."""
+    import math
+
+    from l3d_app.render.densities import LaplaceDensity
+    from l3d_app.tasks.volsdf import free_space_loss
+
+    dens = LaplaceDensity(0.1, None, learnable=False, beta_min=0.0)
+    f = torch.tensor([0.1, -0.1, 0.0], dtype=torch.float64)
+    length = torch.tensor([1.0, 2.0, 1.0], dtype=torch.float64)
+    psi = [0.5 * math.exp(-1.0), 1 - 0.5 * math.exp(-1.0), 0.5]
+    occupancy = (psi[0] * 1 + psi[1] * 2 + psi[2] * 1) / 3
+    assert float(free_space_loss("occupancy", f, length, dens)) == pytest.approx(occupancy, rel=1e-6)
+    assert float(free_space_loss("density", f, length, dens)) == pytest.approx(10 * occupancy, rel=1e-6)
+    assert float(free_space_loss("outside", f, length, dens)) == pytest.approx(0.1 / 3, rel=1e-12)
+
+
+def test_free_space_weight_fades_linearly_to_zero_at_until():
+    from l3d_app.tasks.volsdf import free_space_fade
+
+    assert [free_space_fade(p, None) for p in (0.0, 0.7, 1.0)] == [1.0, 1.0, 1.0]
+    assert [free_space_fade(p, 0.5) for p in (0.0, 0.25, 0.5, 0.9)] == [1.0, 0.5, 0.0, 0.0]
