@@ -313,3 +313,18 @@ def test_renderer_gradients_reach_texture_colours_and_vertices():
     (out["image"].sum() + out["depth"].sum()).backward()
     for g in (tex.grad, verts.grad):
         assert g is not None and torch.isfinite(g).all() and g.abs().sum() > 0
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"ambient": -1}, "ambient must be a number >= 0"),             # render360 ambient=-1 used to render
+    ({"diffuse": [0.5, -0.1, 0.5]}, "diffuse must be a number >= 0 or 3 of them"),
+    ({"specular": [0.1, 0.1]}, "specular must be a number >= 0 or 3 of them"),
+    ({"light_color": "white"}, "light_color must be a number >= 0 or 3 of them"),
+    ({"shininess": 0}, "shininess must be > 0"),
+])
+def test_renderer_rejects_negative_or_malformed_material_and_light(kwargs, needle):
+    from l3d_app.errors import UserError
+
+    with pytest.raises(UserError, match=needle):
+        MeshRenderer(**kwargs)
+    MeshRenderer(ambient=0, diffuse=(0.2, 0.3, 0.4), specular=torch.tensor(0.0), light_color=[1, 1, 1])

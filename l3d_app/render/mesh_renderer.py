@@ -81,6 +81,11 @@ class MeshRenderer:
             raise UserError(f"antialias must be an integer >= 1, got {antialias}")
         if len(background) != 3:
             raise UserError(f"background must be 3 numbers (RGB), got {background}")
+        for name, value in (("ambient", ambient), ("diffuse", diffuse), ("specular", specular),
+                            ("light_color", light_color)):
+            _require_nonnegative_color(name, value)
+        if not float(shininess) > 0:
+            raise UserError(f"shininess must be > 0 (a Phong exponent), got {shininess}")
         self.shading, self.background = shading, tuple(float(c) for c in background)
         self.material = Material(ambient, diffuse, specular, float(shininess))
         self.light_direction = (None if light_direction is None
@@ -179,3 +184,16 @@ def _downsample(out: Dict[str, torch.Tensor], s: int) -> Dict[str, torch.Tensor]
     normals = F.normalize(pool(out["normals"]), dim=-1, eps=1e-12)
     return {"image": pool(out["image"]), "alpha": alpha[..., 0], "depth": depth[..., 0],
             "normals": normals, "pix_to_face": out["pix_to_face"][:, s // 2::s, s // 2::s]}
+
+
+def _require_nonnegative_color(name: str, value) -> None:
+    """UserError unless ``value`` is a number >= 0 or 3 of them (a reflectance or light colour)."""
+    try:
+        values = [float(value)]
+    except (TypeError, ValueError):
+        try:
+            values = [float(v) for v in value]
+        except (TypeError, ValueError):
+            values = []
+    if len(values) not in (1, 3) or not all(v >= 0 for v in values):
+        raise UserError(f"{name} must be a number >= 0 or 3 of them (RGB), got {value}")
