@@ -33,6 +33,9 @@ def test_nonnegative_accepts_zero_and_positive_and_positive_rejects_zero():
     ("volsdf", "free_space.points=0", "free_space.points must be a positive number"),
     ("volsdf", "free_space.loss=inside", "free_space.loss must be occupancy, density or outside"),
     ("volsdf", "free_space.until=0", "free_space.until must be null or lie in"),
+    ("svr_train", "lr_floor=-1", "lr_floor must be a number >= 0"),          # used to train with a negative LR at the end
+    ("svr_train", "error_max=0", "error_max must be a positive number"),
+    ("svr_train", "eval_view=-1", "eval_view must be a number >= 0"),
 ])
 def test_task_rejects_bad_values_before_loading_data(compose, task, override, needle):
     """Each check runs at the top of the task, before the data is read or a step is taken."""
