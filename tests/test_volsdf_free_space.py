@@ -78,7 +78,7 @@ def test_free_space_losses_against_the_laplace_cdf_by_hand():
     import math
 
     from l3d_app.render.densities import LaplaceDensity
-    from l3d_app.tasks.volsdf import free_space_loss
+    from l3d_app.losses.free_space import free_stretch_loss as free_space_loss
 
     dens = LaplaceDensity(0.1, None, learnable=False, beta_min=0.0)
     f = torch.tensor([0.1, -0.1, 0.0], dtype=torch.float64)
@@ -91,7 +91,7 @@ def test_free_space_losses_against_the_laplace_cdf_by_hand():
 
 
 def test_free_space_weight_fades_linearly_to_zero_at_until():
-    from l3d_app.tasks.volsdf import free_space_fade
+    from l3d_app.losses.free_space import fade_to_zero as free_space_fade
 
     assert [free_space_fade(p, None) for p in (0.0, 0.7, 1.0)] == [1.0, 1.0, 1.0]
     assert [free_space_fade(p, 0.5) for p in (0.0, 0.25, 0.5, 0.9)] == [1.0, 0.5, 0.0, 0.0]

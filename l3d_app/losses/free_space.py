@@ -11,6 +11,11 @@ Measured on the development scene ``ground`` (docs/measured/volsdf.md): neither 
 the mound in view, the fraction form cleared the leftover where no ray passes at a cost in
 PSNR and surface roughness, and larger weights were worse; volsdf keeps them off.
 
+``free_stretch_loss(kind, f, length, density)``: the same idea where the images SAY a point is
+empty (a point on a training ray before any surface, ``render/free_space.py``): ``outside``
+``mean(relu(-f))``, ``density`` the stretch's optical depth (1-point estimate), ``occupancy`` that
+over alpha (VolSDF's Psi_beta(-f) x length).
+
 ``occupied_fraction(f, softness) = mean(sigmoid(-f / softness))``: the share of the box inside
 the solid, smoothed over ``softness`` world units; its gradient sits at the boundary
 (``|f|`` within a few ``softness``) and leaves the inside's values alone.
@@ -32,3 +37,22 @@ def occupied_fraction(sdf: torch.Tensor, softness: float) -> torch.Tensor:
     if not float(softness) > 0:
         raise ValueError(f"softness must be > 0, got {softness}")
     return torch.sigmoid(-sdf / float(softness)).mean()
+
+
+def fade_to_zero(progress: float, until) -> float:
+    """A weight's factor at ``progress`` (step / steps): 1 throughout when
+    ``until`` is None, else falling linearly from 1 at the start to 0 at ``until``."""
+    if until is None:
+        return 1.0
+    return max(0.0, 1.0 - float(progress) / float(until))
+
+
+def free_stretch_loss(kind: str, f: torch.Tensor, length: torch.Tensor, density) -> torch.Tensor:
+    """The loss at (N,) SDF values ``f`` of points on known-free stretches of (N,) ``length``
+    (world units): ``outside`` mean(relu(-f)); ``density`` the mean optical depth of a stretch
+    (density(f) x length, 1-point estimate); ``occupancy`` the same over alpha (Psi_beta(-f) x length:
+    as strong as ``density`` early, weaker as beta anneals)."""
+    if kind == "outside":
+        return occupied_volume(f)
+    tau = density(f) * length
+    return tau.mean() if kind == "density" else (tau / density.alpha).mean()

@@ -36,7 +36,7 @@
   (:mod:`~l3d_app.tasks.free_space_common`) marks, on each training ray, the stretch before its
   opacity reaches ``free_space.opacity`` (less ``free_space.margin``); each step adds
   ``free_space.weight`` x a loss at ``free_space.points`` points drawn on those stretches (what a
-  ray passes through before any surface is empty; :func:`free_space_loss`), the weight falling
+  ray passes through before any surface is empty; :func:`~l3d_app.losses.free_space.free_stretch_loss`), the weight falling
   linearly to 0 at ``free_space.until`` x iters when that is set.
 * evaluation renders average ``supersample``^2 rays per pixel (the images are SSAA renders).
 
@@ -71,7 +71,7 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.geometry.rays import camera_rays, pixel_axes
 from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
-from l3d_app.losses.free_space import occupied_fraction, occupied_volume
+from l3d_app.losses.free_space import fade_to_zero, free_stretch_loss, occupied_fraction, occupied_volume
 from l3d_app.losses.occupancy import coverage_bce
 from l3d_app.metrics.surface_scores import surface_scores
 from l3d_app.models.level_schedule import LevelSchedule
@@ -182,11 +182,11 @@ def volsdf(cfg, ctx) -> dict:
                 soft = float(cfg.free_softness)
                 occ = occupied_fraction(f_box, soft) if soft > 0 else occupied_volume(f_box)
                 loss, logs["free_prior"] = loss + float(cfg.w_free) * occ, occ.detach()
-        w_now = w_carve * free_space_fade(nominal / max(int(cfg.iters), 1), cfg.free_space.get("until"))
+        w_now = w_carve * fade_to_zero(nominal / max(int(cfg.iters), 1), cfg.free_space.get("until"))
         if free is not None and len(free) and w_now > 0:   # points some training ray passes before any surface
             pts, length = free.sample(int(cfg.free_space.points), ctx.generator)
             f_free = model.sdf(pts)
-            carve = free_space_loss(str(cfg.free_space.loss), f_free, length, dens)
+            carve = free_stretch_loss(str(cfg.free_space.loss), f_free, length, dens)
             loss, logs["free_space"] = loss + w_now * carve, carve.detach()
         stats["samples_per_ray"] = float(out["samples_per_ray"])
         stats["fine_samples_per_ray"] = float(out["fine_samples_per_ray"])
@@ -258,25 +258,6 @@ def volsdf(cfg, ctx) -> dict:
         "background": [round(float(c), 4) for c in background["rgb"].detach().clamp(0, 1)],
     })
     return metrics
-
-
-def free_space_fade(progress: float, until) -> float:
-    """The free-space weight's factor at ``progress`` (nominal step / iters): 1 throughout when
-    ``until`` is None, else falling linearly from 1 at the start to 0 at ``until``."""
-    if until is None:
-        return 1.0
-    return max(0.0, 1.0 - float(progress) / float(until))
-
-
-def free_space_loss(kind: str, f: torch.Tensor, length: torch.Tensor, density) -> torch.Tensor:
-    """The loss at (N,) SDF values ``f`` of points on known-free stretches of (N,) ``length``
-    (world units): ``outside`` mean(relu(-f)); ``density`` the mean optical depth of a stretch
-    (density(f) x length, 1-point estimate); ``occupancy`` the same over alpha (Psi_beta(-f) x length:
-    as strong as ``density`` early, weaker as beta anneals)."""
-    if kind == "outside":
-        return occupied_volume(f)
-    tau = density(f) * length
-    return tau.mean() if kind == "density" else (tau / density.alpha).mean()
 
 
 def sdf_and_gradient_at(model, points: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
