@@ -102,3 +102,16 @@ def test_pointnet_training_knobs_are_checked(compose, override, needle):
 
     with pytest.raises(UserError, match=needle):
         check_train_knobs(compose("task=pointnet_cls", override))
+
+
+@pytest.mark.parametrize("override, needle", [
+    ("init_noise=-0.1", "init_noise must be a number >= 0"),    # a standard deviation
+    ("shift=-1", "shift must be a number >= 0"),                # a roll in pixels
+])
+def test_sds_image_rejects_negative_noise_and_shift(compose, override, needle):
+    from l3d_app.registry import TASKS
+    import l3d_app.tasks  # noqa: F401
+
+    with pytest.raises(UserError, match=needle):
+        TASKS.get("sds_image")(compose("task=sds_image", override), None)
+

@@ -43,7 +43,7 @@ from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.lr_schedules import warmup_cosine
 from l3d_app.runtime.random import randint, randn
 from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.common import require_positive
+from l3d_app.tasks.common import require_nonnegative, require_positive
 
 
 def _in_vocabulary(prompt: str) -> bool:
@@ -63,6 +63,7 @@ def _hwc(images: torch.Tensor) -> torch.Tensor:
 def sds_image(cfg, ctx) -> dict:
     """Optimise, log the image over iterations, check the result; return the metrics."""
     require_positive(cfg, "iters", "lr", "batch", "frame_every")
+    require_nonnegative(cfg, "shift", "init_noise")     # a roll in pixels, a standard deviation
     if not str(cfg.prompt).strip():
         raise UserError("prompt must not be empty, e.g. prompt='a red circle'")
     prior = PRIORS.build(cfg.prior, device=ctx.device)
