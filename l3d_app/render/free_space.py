@@ -5,7 +5,7 @@ puts its density there, and the stretch of each training ray before the density 
 :func:`opacity_distance` finds, per ray, where the accumulated opacity first reaches a level;
 :func:`free_distances` does so for many rays of a trained field; :class:`FreeRays` keeps each
 ray's free segment (box entry to that distance less a margin) and draws points on them, at which a
-surface model can be told "outside" (:func:`~l3d_app.losses.free_space.occupied_volume`).
+surface model can be told "empty" (:func:`~l3d_app.losses.free_space.free_stretch_loss`).
 Nothing is said about what no ray passes through (hidden interiors, the unseen underside).
 """
 

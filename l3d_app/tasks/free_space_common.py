@@ -35,8 +35,7 @@ FILE = "free_space.pt"
 def check_free_space_config(cfg) -> None:
     """One line, exit 2, before any data is read: the stage's knobs (``cfg`` = ``free_space``)."""
     named = {f"free_space.{k}": cfg.get(k) for k in ("steps", "batch_rays", "opacity", "margin", "points",
-                                                      "weight", "chunk")}
-    named["free_space.max_rays"] = cfg.get("max_rays")
+                                                      "weight", "chunk", "max_rays")}
     require_nonnegative(named, "free_space.steps", "free_space.margin", "free_space.weight", "free_space.max_rays")
     require_positive(named, "free_space.batch_rays", "free_space.points", "free_space.chunk", "free_space.opacity")
     if str(cfg.get("loss")) not in ("occupancy", "density", "outside"):
