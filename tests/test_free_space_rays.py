@@ -78,6 +78,14 @@ def test_free_segments_follow_the_box_and_the_margin():
     assert torch.all(pts[:, 1:] == 0) and pts[:, 0].min() >= -1.0 and pts[:, 0].max() <= 1.0
     # half the draws on each ray: uniform on [-1, 0.15] and on [-1, 1]: mean (-0.425 + 0) / 2
     assert abs(float(pts[:, 0].mean()) - (-0.2125)) < 0.01
+    # shortened by 1.5: the first ray has nothing left (its near point, length 0), the second [-1, -0.5]
+    pts, length = free.sample(20000, torch.Generator().manual_seed(2), shorten=1.5)
+    first = length == 0
+    assert 0.45 < float(first.float().mean()) < 0.55
+    torch.testing.assert_close(pts[first], torch.tensor([-1.0, 0.0, 0.0]).expand(int(first.sum()), 3))
+    torch.testing.assert_close(length[~first], torch.full((int((~first).sum()),), 0.5))
+    assert pts[~first, 0].min() >= -1.0 and pts[~first, 0].max() <= -0.5
+    assert abs(float(pts[~first, 0].mean()) - (-0.75)) < 0.01
 
 
 def test_carving_on_free_segments_shrinks_a_sphere_out_of_them():

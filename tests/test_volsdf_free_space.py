@@ -72,6 +72,14 @@ def test_density_loss_needs_the_volsdf_density(compose):
         TASKS.get("volsdf")(cfg, None)
 
 
+def test_margin_beta_needs_the_volsdf_density(compose):
+    import l3d_app.tasks  # noqa: F401
+    cfg = compose("task=volsdf", "density=neus", "free_space.steps=10", "free_space.loss=outside",
+                  "free_space.margin_beta=2", "data=blender", "data.root=/no/such/folder")
+    with pytest.raises(UserError, match="free_space.margin_beta needs density=volsdf"):
+        TASKS.get("volsdf")(cfg, None)
+
+
 def test_free_space_losses_against_the_laplace_cdf_by_hand():
     """Psi_beta(-f) = 0.5 exp(-f / beta) outside, 1 - 0.5 exp(f / beta) inside (VolSDF), written out
     here; occupancy = mean(Psi x length), density = alpha x that (alpha = 1 / beta), outside = mean(relu(-f))."""

@@ -77,11 +77,14 @@ class FreeRays:
     def __len__(self) -> int:
         return int(self.near.shape[0])
 
-    def sample(self, n: int, generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+    def sample(self, n: int, generator: Optional[torch.Generator] = None,
+               shorten: float = 0.0) -> Tuple[torch.Tensor, torch.Tensor]:
         """(n, 3) points, each uniform on the free segment of a uniformly drawn ray, and (n,) the
-        lengths of those segments (density x length estimates the segment's optical depth)."""
+        lengths of those segments (density x length estimates the segment's optical depth).
+        ``shorten`` >= 0 (world units) first takes that much off each segment's far end; a ray
+        with nothing left gives its near point and length 0."""
         dev = self.origins.device
         i = randint(0, len(self), (n,), generator, dev)
-        length = self.far[i] - self.near[i]
+        length = (self.far[i] - float(shorten) - self.near[i]).clamp_min(0.0)
         t = self.near[i] + rand((n,), generator, dev) * length
         return self.origins[i] + t[:, None] * self.dirs[i], length

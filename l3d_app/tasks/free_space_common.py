@@ -34,9 +34,10 @@ FILE = "free_space.pt"
 
 def check_free_space_config(cfg) -> None:
     """One line, exit 2, before any data is read: the stage's knobs (``cfg`` = ``free_space``)."""
-    named = {f"free_space.{k}": cfg.get(k) for k in ("steps", "batch_rays", "opacity", "margin", "points",
+    named = {f"free_space.{k}": cfg.get(k) for k in ("steps", "batch_rays", "opacity", "margin", "margin_beta", "points",
                                                       "weight", "chunk", "max_rays")}
-    require_nonnegative(named, "free_space.steps", "free_space.margin", "free_space.weight", "free_space.max_rays")
+    require_nonnegative(named, "free_space.steps", "free_space.margin", "free_space.margin_beta", "free_space.weight",
+                        "free_space.max_rays")
     require_positive(named, "free_space.batch_rays", "free_space.points", "free_space.chunk", "free_space.opacity")
     if str(cfg.get("loss")) not in ("occupancy", "density", "outside"):
         raise UserError(f"free_space.loss must be occupancy, density or outside, got {cfg.get('loss')!r}")

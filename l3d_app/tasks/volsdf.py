@@ -34,7 +34,8 @@
   ``pixel_jitter=true`` sends each training ray through a random point of its pixel.
 * known free space (``free_space.steps`` > 0): a short radiance-field fit first
   (:mod:`~l3d_app.tasks.free_space_common`) marks, on each training ray, the stretch before its
-  opacity reaches ``free_space.opacity`` (less ``free_space.margin``); each step adds
+  opacity reaches ``free_space.opacity`` (less ``free_space.margin``, and less ``free_space.margin_beta``
+  x the current beta); each step adds
   ``free_space.weight`` x a loss at ``free_space.points`` points drawn on those stretches (what a
   ray passes through before any surface is empty; :func:`~l3d_app.losses.free_space.free_stretch_loss`), the weight falling
   linearly to 0 at ``free_space.until`` x iters when that is set.
@@ -108,6 +109,9 @@ def volsdf(cfg, ctx) -> dict:
     if int(cfg.free_space.steps) > 0 and str(cfg.free_space.loss) != "outside" and str(cfg.density.name) != "volsdf":
         raise UserError(f"free_space.loss={cfg.free_space.loss} needs density=volsdf (a density per point), got density="
                         f"{cfg.density.name}: use free_space.loss=outside")
+    if int(cfg.free_space.steps) > 0 and float(cfg.free_space.margin_beta) > 0 and str(cfg.density.name) != "volsdf":
+        raise UserError(f"free_space.margin_beta needs density=volsdf (a Laplace scale beta), got density="
+                        f"{cfg.density.name}: use free_space.margin_beta=0")
     data = DATASETS.build(cfg.data).to(ctx.device)
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
@@ -184,7 +188,8 @@ def volsdf(cfg, ctx) -> dict:
                 loss, logs["free_prior"] = loss + float(cfg.w_free) * occ, occ.detach()
         w_now = w_carve * fade_to_zero(nominal / max(int(cfg.iters), 1), cfg.free_space.get("until"))
         if free is not None and len(free) and w_now > 0:   # points some training ray passes before any surface
-            pts, length = free.sample(int(cfg.free_space.points), ctx.generator)
+            shorten = float(cfg.free_space.margin_beta) * float(dens.beta) if float(cfg.free_space.margin_beta) > 0 else 0.0
+            pts, length = free.sample(int(cfg.free_space.points), ctx.generator, shorten)
             f_free = model.sdf(pts)
             carve = free_stretch_loss(str(cfg.free_space.loss), f_free, length, dens)
             loss, logs["free_space"] = loss + w_now * carve, carve.detach()
