@@ -103,3 +103,34 @@ def test_free_space_weight_fades_linearly_to_zero_at_until():
 
     assert [free_space_fade(p, None) for p in (0.0, 0.7, 1.0)] == [1.0, 1.0, 1.0]
     assert [free_space_fade(p, 0.5) for p in (0.0, 0.25, 0.5, 0.9)] == [1.0, 0.5, 0.0, 0.0]
+
+
+def test_auto_steps_turn_the_stage_on_for_volsdf_only(compose):
+    from l3d_app.tasks.free_space_common import check_free_space_config, resolve_free_space
+    cfg = compose("task=volsdf")
+    assert cfg.free_space.steps == "auto"
+    check_free_space_config(cfg.free_space)
+    assert resolve_free_space(cfg.free_space, "volsdf").steps == cfg.free_space.auto_steps == 600
+    assert resolve_free_space(cfg.free_space, "neus").steps == 0
+    assert cfg.free_space.steps == "auto"                  # the task's config is not changed
+    fixed = compose("task=volsdf", "free_space.steps=7")
+    assert resolve_free_space(fixed.free_space, "volsdf").steps == 7
+    assert resolve_free_space(fixed.free_space, "neus").steps == 7
+
+
+@pytest.mark.parametrize("value", ["often", -1, True])
+def test_steps_must_be_auto_or_a_count(compose, value):
+    from l3d_app.tasks.free_space_common import check_free_space_config
+    cfg = compose("task=volsdf")
+    cfg.free_space.steps = value
+    with pytest.raises(UserError, match="free_space.steps must be a number >= 0"):
+        check_free_space_config(cfg.free_space)
+
+
+def test_neus_with_the_default_free_space_reaches_the_data(compose):
+    """density=neus with the defaults (steps=auto, margin_beta=1) passes the checks: the run stops at the data."""
+    import l3d_app.tasks  # noqa: F401
+    cfg = compose("task=volsdf", "density=neus", "data=blender", "data.root=/no/such/folder")
+    with pytest.raises(UserError) as err:
+        TASKS.get("volsdf")(cfg, None)
+    assert "free_space" not in str(err.value) and "/no/such/folder" in str(err.value)

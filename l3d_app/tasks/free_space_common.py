@@ -34,10 +34,12 @@ FILE = "free_space.pt"
 
 def check_free_space_config(cfg) -> None:
     """One line, exit 2, before any data is read: the stage's knobs (``cfg`` = ``free_space``)."""
-    named = {f"free_space.{k}": cfg.get(k) for k in ("steps", "batch_rays", "opacity", "margin", "margin_beta", "points",
-                                                      "weight", "chunk", "max_rays")}
-    require_nonnegative(named, "free_space.steps", "free_space.margin", "free_space.margin_beta", "free_space.weight",
-                        "free_space.max_rays")
+    named = {f"free_space.{k}": cfg.get(k) for k in ("steps", "auto_steps", "batch_rays", "opacity", "margin",
+                                                      "margin_beta", "points", "weight", "chunk", "max_rays")}
+    if named["free_space.steps"] != "auto":
+        require_nonnegative(named, "free_space.steps")
+    require_nonnegative(named, "free_space.auto_steps", "free_space.margin", "free_space.margin_beta",
+                        "free_space.weight", "free_space.max_rays")
     require_positive(named, "free_space.batch_rays", "free_space.points", "free_space.chunk", "free_space.opacity")
     if str(cfg.get("loss")) not in ("occupancy", "density", "outside"):
         raise UserError(f"free_space.loss must be occupancy, density or outside, got {cfg.get('loss')!r}")
@@ -46,6 +48,17 @@ def check_free_space_config(cfg) -> None:
         raise UserError(f"free_space.until must be null or lie in (0, 1] (a fraction of the steps), got {until!r}")
     if float(cfg.opacity) > 1.0:
         raise UserError(f"free_space.opacity must lie in (0, 1] (an accumulated opacity), got {cfg.opacity}")
+
+
+def resolve_free_space(cfg, density: str):
+    """A copy of ``cfg`` (= ``free_space``, checked) with ``steps`` a number: ``auto`` gives ``auto_steps``
+    with ``density`` ``volsdf`` and 0 (the stage off) with any other density (``neus``): the stage and its
+    default occupancy loss were chosen with VolSDF's Laplace density only (docs/measured/volsdf.md)."""
+    from omegaconf import OmegaConf
+    out = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    if out.steps == "auto":
+        out.steps = int(out.auto_steps) if str(density) == "volsdf" else 0
+    return out
 
 
 def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor, colors: torch.Tensor,

@@ -32,7 +32,7 @@
   ``optim=warmup_cosine`` (Adam eps 1e-15, ``warmup_steps`` linear warm-up then cosine decay to
   ``lr * lr_final_ratio``).
   ``pixel_jitter=true`` sends each training ray through a random point of its pixel.
-* known free space (``free_space.steps`` > 0): a short radiance-field fit first
+* known free space (``free_space.steps``: ``auto`` = 600 steps with density=volsdf, off with neus): a short radiance-field fit first
   (:mod:`~l3d_app.tasks.free_space_common`) marks, on each training ray, the stretch before its
   opacity reaches ``free_space.opacity`` (less ``free_space.margin``, and less ``free_space.margin_beta``
   x the current beta); each step adds
@@ -94,7 +94,7 @@ from l3d_app.tasks.common import (background_parameter, require_mesh_resolution,
                                  require_positive)
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
                                         turntable_width)
-from l3d_app.tasks.free_space_common import check_free_space_config, fit_free_rays
+from l3d_app.tasks.free_space_common import check_free_space_config, fit_free_rays, resolve_free_space
 
 
 @TASKS.register("volsdf")
@@ -106,10 +106,11 @@ def volsdf(cfg, ctx) -> dict:
     require_positive(cfg, "cache_every")
     require_mesh_resolution(cfg)
     check_free_space_config(cfg.free_space)
-    if int(cfg.free_space.steps) > 0 and str(cfg.free_space.loss) != "outside" and str(cfg.density.name) != "volsdf":
-        raise UserError(f"free_space.loss={cfg.free_space.loss} needs density=volsdf (a density per point), got density="
+    fs = resolve_free_space(cfg.free_space, cfg.density.name)     # steps=auto: on with density=volsdf only
+    if int(fs.steps) > 0 and str(fs.loss) != "outside" and str(cfg.density.name) != "volsdf":
+        raise UserError(f"free_space.loss={fs.loss} needs density=volsdf (a density per point), got density="
                         f"{cfg.density.name}: use free_space.loss=outside")
-    if int(cfg.free_space.steps) > 0 and float(cfg.free_space.margin_beta) > 0 and str(cfg.density.name) != "volsdf":
+    if int(fs.steps) > 0 and float(fs.margin_beta) > 0 and str(cfg.density.name) != "volsdf":
         raise UserError(f"free_space.margin_beta needs density=volsdf (a Laplace scale beta), got density="
                         f"{cfg.density.name}: use free_space.margin_beta=0")
     data = DATASETS.build(cfg.data).to(ctx.device)
@@ -140,10 +141,10 @@ def volsdf(cfg, ctx) -> dict:
     n_rays, batch = flat_o.shape[0], int(cfg.batch_rays)
     lo, hi = torch.tensor(box[0], device=ctx.device), torch.tensor(box[1], device=ctx.device)
     field_fn = field_with_gradient(model)
-    free, w_carve = None, float(cfg.free_space.weight)
-    if int(cfg.free_space.steps) > 0 and w_carve > 0:     # what the training rays pass through, from a radiance field
+    free, w_carve = None, float(fs.weight)
+    if int(fs.steps) > 0 and w_carve > 0:     # what the training rays pass through, from a radiance field
         with ctx.stopwatch.stage("free_space"):
-            free = fit_free_rays(cfg.free_space, ctx, data, box, flat_o, torch.nn.functional.normalize(flat_d, dim=-1),
+            free = fit_free_rays(fs, ctx, data, box, flat_o, torch.nn.functional.normalize(flat_d, dim=-1),
                                  flat_rgb, cfg.learn_background, float(cfg.time_budget),
                                  bool(cfg.resume) and (ctx.out_dir / "checkpoint.pt").exists())
         if free is None:     # interrupted during the stage: nothing trained yet
@@ -186,12 +187,12 @@ def volsdf(cfg, ctx) -> dict:
                 soft = float(cfg.free_softness)
                 occ = occupied_fraction(f_box, soft) if soft > 0 else occupied_volume(f_box)
                 loss, logs["free_prior"] = loss + float(cfg.w_free) * occ, occ.detach()
-        w_now = w_carve * fade_to_zero(nominal / max(int(cfg.iters), 1), cfg.free_space.get("until"))
+        w_now = w_carve * fade_to_zero(nominal / max(int(cfg.iters), 1), fs.get("until"))
         if free is not None and len(free) and w_now > 0:   # points some training ray passes before any surface
-            shorten = float(cfg.free_space.margin_beta) * float(dens.beta) if float(cfg.free_space.margin_beta) > 0 else 0.0
-            pts, length = free.sample(int(cfg.free_space.points), ctx.generator, shorten)
+            shorten = float(fs.margin_beta) * float(dens.beta) if float(fs.margin_beta) > 0 else 0.0
+            pts, length = free.sample(int(fs.points), ctx.generator, shorten)
             f_free = model.sdf(pts)
-            carve = free_stretch_loss(str(cfg.free_space.loss), f_free, length, dens)
+            carve = free_stretch_loss(str(fs.loss), f_free, length, dens)
             loss, logs["free_space"] = loss + w_now * carve, carve.detach()
         stats["samples_per_ray"] = float(out["samples_per_ray"])
         stats["fine_samples_per_ray"] = float(out["fine_samples_per_ray"])
