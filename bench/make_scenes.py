@@ -24,6 +24,7 @@ concave     128   a thick-walled bowl and an open cup, seen into from above   he
 texture     128   stripes and checks on flat slabs and a cube (1/16 periods)  held out
 above       128   objects on a ground plate, cameras from above only          held out
 around      256   a glossy torus knot and a sphere, cameras from all round    held out
+dev256      256   dev at 256 px (only with ``--only dev256``): budget choices   DEVELOPMENT
 ==========  ====  ==========================================================  ===============
 
 Lighting: a constant environment (radiance 0.5) and a directional sun (irradiance 3),
@@ -213,6 +214,8 @@ SCENES: Dict[str, dict] = {
                   tests="seen only from above (nothing below the plate is observed)"),
     "around": dict(build=scene_around, size=256, elev=(-80.0, 80.0), role="held out",
                    tests="seen from all round, 256x256, glossy torus knot"),
+    "dev256": dict(build=scene_dev, size=256, elev=(-30.0, 75.0), role="development", default=False,
+                   tests="the development scene dev at 256x256: time-budget choices at the held-out scene's size"),
 }
 
 
@@ -390,12 +393,12 @@ def check_scene(folder: Path) -> Dict[str, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
-    ap.add_argument("--only", nargs="*", default=None, help="scene names (default: all)")
+    ap.add_argument("--only", nargs="*", default=None, help="scene names (default: all but those marked default=False: dev256)")
     ap.add_argument("--spp", type=int, default=128, help="samples per pixel")
     ap.add_argument("--force", action="store_true", help="re-render existing scenes")
     ap.add_argument("--check", action="store_true", help="silhouette IoU of the written cameras")
     args = ap.parse_args()
-    names = args.only or list(SCENES)
+    names = args.only or [n for n, spec in SCENES.items() if spec.get("default", True)]
     for name in names:
         if name not in SCENES:
             raise SystemExit(f"unknown scene '{name}'; known: {', '.join(SCENES)}")

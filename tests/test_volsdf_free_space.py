@@ -134,3 +134,19 @@ def test_neus_with_the_default_free_space_reaches_the_data(compose):
     with pytest.raises(UserError) as err:
         TASKS.get("volsdf")(cfg, None)
     assert "free_space" not in str(err.value) and "/no/such/folder" in str(err.value)
+
+
+def test_a_budget_the_evaluation_needs_skips_the_stage(compose, tmp_path):
+    """The timed "before" validation predicts the final work; with 100 s of budget and 45 s of reserve
+    the stage's half of what is left is under 30 s, so it is skipped; without a budget it runs."""
+    common = ["task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=10", "eval_every=10",
+              "pretrain_steps=10", "free_space.steps=20", "gif_frames=0", "mesh_resolution=16", "eval_points=500"]
+    import json
+    run_task(compose(*common, "time_budget=100", "reserve=45"), out_dir=tmp_path / "tight")
+    tight = json.loads((tmp_path / "tight" / "metrics.json").read_text())
+    assert tight["free_space_skipped"] is True and tight["free_space_rays"] == 0
+    assert not (tmp_path / "tight" / "free_space.pt").exists()
+    run_task(compose(*common, "time_budget=0"), out_dir=tmp_path / "free")
+    free = json.loads((tmp_path / "free" / "metrics.json").read_text())
+    assert free["free_space_skipped"] is False and free["free_space_rays"] > 0
+    assert (tmp_path / "free" / "free_space.pt").exists()

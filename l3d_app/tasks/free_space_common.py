@@ -9,8 +9,9 @@ segment kept (at most ``free_space.max_rays`` of them, a random subset: the read
 once): from the box entry to where the field's accumulated opacity first reaches
 ``free_space.opacity``, less ``free_space.margin`` (world units)
 (:class:`~l3d_app.render.free_space.FreeRays`). The rays' indices and distances are saved to ``free_space.pt``
-in the run directory, so ``resume=true`` does not fit them again. The stage stops early at a third of a
-``time_budget`` (the task's own loop then has the rest).
+in the run directory, so ``resume=true`` does not fit them again. With a ``time_budget`` the stage
+stops at :func:`stage_deadline`: at most a third of the budget, and at most half of what the budget
+leaves after the task's predicted final work; where that is too short the stage is skipped.
 """
 
 from __future__ import annotations
@@ -61,11 +62,44 @@ def resolve_free_space(cfg, density: str):
     return out
 
 
+MIN_STAGE_SECONDS = 30.0
+"""A stage the budget gives less wall time than this is skipped. Set before any run, not tuned: the
+stage's 600 steps took 79-171 s on the development scenes, its first ~35 s the occupancy sampler's
+warm-up, so a fit of under 30 s would stop inside the warm-up."""
+
+
+def stage_deadline(time_budget: float, elapsed: float, eval_seconds: Optional[float], evals_after: float,
+                   reserve: float, minimum: float = MIN_STAGE_SECONDS) -> Optional[float]:
+    """The task's elapsed wall seconds at which the free-space stage must stop.
+
+    Args:
+        time_budget: the task's budget (s); <= 0: none, the stage is not limited (returns 0.0).
+        elapsed: the task's wall seconds so far.
+        eval_seconds: one validation render of the initial field (s), the dearest an evaluation gets
+            (a fuzzy surface skips no empty ray); None: unknown, only the third applies.
+        evals_after: the rendering after training in validations (``field_common.evals_after_training``).
+        reserve: the task's other seconds after training (artefacts).
+    Returns:
+        ``min(budget / 3, elapsed + (budget - elapsed - final) / 2)`` with ``final = eval_seconds x
+        (1 + evals_after) + reserve`` (the last validation, then the test views and gifs): the stage
+        takes at most half of what the final work leaves; None (skip the stage) when that leaves it
+        under ``minimum`` seconds.
+    """
+    if time_budget <= 0:
+        return 0.0
+    deadline = time_budget / 3.0
+    if eval_seconds is not None:
+        final = eval_seconds * (1.0 + evals_after) + reserve
+        deadline = min(deadline, elapsed + 0.5 * (time_budget - elapsed - final))
+    return deadline if deadline - elapsed >= minimum else None
+
+
 def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor, colors: torch.Tensor,
-                  learn_background, time_budget: float, resume: bool) -> Optional[FreeRays]:
+                  learn_background, deadline: float, resume: bool) -> Optional[FreeRays]:
     """Fit the stage's radiance field to the training rays (``origins``, unit ``dirs``, ``colors``
     (R, 3)) and return their free segments; None when interrupted. ``cfg`` = ``free_space``;
-    ``learn_background`` as the task's (one RGB behind the box when the data does not know it)."""
+    ``learn_background`` as the task's (one RGB behind the box when the data does not know it);
+    ``deadline``: the task's elapsed seconds where the fit stops (:func:`stage_deadline`; 0: none)."""
     path = ctx.path(FILE)
     if resume and path.exists():     # the fitted run's rays and their distances
         saved = torch.load(path, map_location="cpu", weights_only=True)
@@ -90,7 +124,7 @@ def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor
         return {"loss": ((out["color"] - colors[idx]) ** 2).mean(), "samples_per_ray": out["samples_per_ray"]}
 
     result = train(ctx, trainable, step_fn, int(cfg.steps), desc="free space (radiance field)",
-                   time_budget=time_budget / 3.0 if time_budget > 0 else 0.0, reserve=0.0,
+                   time_budget=float(deadline), reserve=0.0,
                    log_prefix="free_space", checkpoint=False)
     if result.interrupted:
         return None

@@ -38,7 +38,11 @@
   x the current beta); each step adds
   ``free_space.weight`` x a loss at ``free_space.points`` points drawn on those stretches (what a
   ray passes through before any surface is empty; :func:`~l3d_app.losses.free_space.free_stretch_loss`), the weight falling
-  linearly to 0 at ``free_space.until`` x iters when that is set.
+  linearly to 0 at ``free_space.until`` x iters when that is set. With a ``time_budget`` the stage
+  gets at most half of what the budget leaves after the final work predicted from the timed "before"
+  validation (:func:`~l3d_app.tasks.free_space_common.stage_deadline`), and is skipped (logged,
+  ``free_space_skipped`` in the metrics) where that is under 30 s: at 256 px the test views cost
+  too much for both.
 * evaluation renders average ``supersample``^2 rays per pixel (the images are SSAA renders).
 
 Evaluation: every ``eval_every`` steps on the VALIDATION views (PSNR / SSIM and a
@@ -94,7 +98,9 @@ from l3d_app.tasks.common import (background_parameter, require_mesh_resolution,
                                  require_positive)
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
                                         turntable_width)
-from l3d_app.tasks.free_space_common import check_free_space_config, fit_free_rays, resolve_free_space
+from l3d_app.tasks.free_space_common import FILE as FREE_SPACE_FILE
+from l3d_app.tasks.free_space_common import (MIN_STAGE_SECONDS, check_free_space_config, fit_free_rays,
+                                               resolve_free_space, stage_deadline)
 
 
 @TASKS.register("volsdf")
@@ -141,20 +147,44 @@ def volsdf(cfg, ctx) -> dict:
     n_rays, batch = flat_o.shape[0], int(cfg.batch_rays)
     lo, hi = torch.tensor(box[0], device=ctx.device), torch.tensor(box[1], device=ctx.device)
     field_fn = field_with_gradient(model)
-    free, w_carve = None, float(fs.weight)
-    if int(fs.steps) > 0 and w_carve > 0:     # what the training rays pass through, from a radiance field
-        with ctx.stopwatch.stage("free_space"):
-            free = fit_free_rays(fs, ctx, data, box, flat_o, torch.nn.functional.normalize(flat_d, dim=-1),
-                                 flat_rgb, cfg.learn_background, float(cfg.time_budget),
-                                 bool(cfg.resume) and (ctx.out_dir / "checkpoint.pt").exists())
-        if free is None:     # interrupted during the stage: nothing trained yet
-            return {"interrupted_in": "free_space"}
     stats = {"samples_per_ray": 0.0, "fine_samples_per_ray": 0.0, "train_seconds": 0.0, "cpu_seconds": 0.0,
              "steps": 0}
 
     def render(o, d, **kw):
         return render_sdf_rays(field_fn, o, d, sampler, dens, field=model,
                               background=background["rgb"].clamp(0, 1), **kw)
+
+    def evaluate(views: torch.Tensor, supersample: int):
+        views = views.to(ctx.device)
+        with torch.no_grad():   # a fresh SDF cache (step -1: not a training step; the schedule goes on)
+            sampler.update(-1, model, ctx.generator, force=True)   # evaluation renders skip the rays it calls empty
+        return evaluate_views(render, data.cameras[views], data.images[views], int(cfg.chunk), supersample)
+
+    val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val
+    evals_after = evals_after_training(   # test views, then render.gif + geometry.gif, in validations
+        len(val), len(data.test), 2 * int(cfg.gif_frames), turntable_width(cfg, data.cameras.width),
+        data.image_size, int(cfg.supersample), int(cfg.val_supersample))
+    resuming = bool(cfg.resume) and ctx.path("checkpoint.pt").exists()
+    before_after, before_seconds = BeforeAfter(), None
+    if len(val) and bool(cfg.before_after) and not resuming:   # timed: the dearest validation (fuzzy start)
+        t_before = time.perf_counter()
+        before_after.before(ctx, lambda: evaluate(val, int(cfg.val_supersample)))
+        before_seconds = time.perf_counter() - t_before
+    free, w_carve = None, float(fs.weight)
+    if int(fs.steps) > 0 and w_carve > 0:     # what the training rays pass through, from a radiance field
+        deadline = stage_deadline(float(cfg.time_budget), ctx.stopwatch.elapsed, before_seconds, evals_after,
+                                  float(cfg.reserve))
+        if resuming:     # the saved stretches, or none where the run being resumed skipped its stage
+            deadline = 0.0 if ctx.path(FREE_SPACE_FILE).exists() else None
+        if deadline is None:
+            ctx.logger.text("free_space", f"skipped: time_budget {float(cfg.time_budget):g} s leaves it under "
+                                          f"{MIN_STAGE_SECONDS:g} s after the predicted evaluation")
+        else:
+            with ctx.stopwatch.stage("free_space"):
+                free = fit_free_rays(fs, ctx, data, box, flat_o, torch.nn.functional.normalize(flat_d, dim=-1),
+                                     flat_rgb, cfg.learn_background, deadline, resuming)
+            if free is None:     # interrupted during the stage: nothing trained yet
+                return {"interrupted_in": "free_space"}
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
         stats["_t0"], stats["_c0"] = time.perf_counter(), time.process_time()
@@ -203,18 +233,6 @@ def volsdf(cfg, ctx) -> dict:
         stats["cpu_seconds"] += time.process_time() - stats.pop("_c0", time.process_time())
         stats["steps"] += 1
 
-    def evaluate(views: torch.Tensor, supersample: int):
-        views = views.to(ctx.device)
-        with torch.no_grad():   # a fresh SDF cache (step -1: not a training step; the schedule goes on)
-            sampler.update(-1, model, ctx.generator, force=True)   # evaluation renders skip the rays it calls empty
-        return evaluate_views(render, data.cameras[views], data.images[views], int(cfg.chunk), supersample)
-
-    val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val
-
-    before_after = BeforeAfter()
-    if len(val) and bool(cfg.before_after) and not (bool(cfg.resume) and ctx.path("checkpoint.pt").exists()):
-        before_after.before(ctx, lambda: evaluate(val, int(cfg.val_supersample)))
-
     def eval_fn(step: int) -> Dict[str, float]:
         metrics, picture, _ = evaluate(val, int(cfg.val_supersample))
         before_after.after(picture)
@@ -227,11 +245,7 @@ def volsdf(cfg, ctx) -> dict:
                        eval_every=int(cfg.eval_every), checkpoint_every=int(cfg.checkpoint_every),
                        resume=bool(cfg.resume), desc="volsdf", after_step=after_step,
                        time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
-                       reserve_evals=evals_after_training(   # test views, then render.gif + geometry.gif
-                           len(val), len(data.test), 2 * int(cfg.gif_frames),
-                           turntable_width(cfg, data.cameras.width), data.image_size, int(cfg.supersample),
-                           int(cfg.val_supersample)),
-                       horizon=horizon)
+                       reserve_evals=evals_after, horizon=horizon)
     model.eval()
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator, force=True)
@@ -254,6 +268,7 @@ def volsdf(cfg, ctx) -> dict:
         "gif_seconds": round(ctx.stopwatch.stages.get("gifs", 0.0), 4),
         "free_space_seconds": round(ctx.stopwatch.stages.get("free_space", 0.0), 4),
         "free_space_rays": 0 if free is None else len(free),
+        "free_space_skipped": bool(int(fs.steps) > 0 and w_carve > 0 and free is None),
         "samples_per_ray": round(stats["samples_per_ray"], 3),
         "fine_samples_per_ray": round(stats["fine_samples_per_ray"], 3),
         "rays_per_second": round(stats["steps"] * batch / max(stats["train_seconds"], 1e-9), 1),
