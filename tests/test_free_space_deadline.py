@@ -25,7 +25,10 @@ def test_a_dear_evaluation_takes_half_of_what_it_leaves():
 
 def test_the_stage_is_skipped_when_its_share_is_too_short():
     # 256 px: final = 19 x 25.5 + 35 = 519.5; 15 + (590 - 15 - 519.5) / 2 = 42.75, only 27.75 s of stage
-    assert MIN_STAGE_SECONDS == 30.0
+    assert MIN_STAGE_SECONDS == 90.0
+    # dev256's first reading: final = 17 x 25.5 + 35 = 468.5; 20 + (590 - 20 - 468.5) / 2 = 70.75: 50.75 s of stage
+    assert stage_deadline(590.0, 20.0, 17.0, 24.5, 35.0) is None
+    assert stage_deadline(590.0, 20.0, 17.0, 24.5, 35.0, minimum=30.0) == pytest.approx(70.75)
     assert stage_deadline(590.0, 15.0, 19.0, 24.5, 35.0) is None
     assert stage_deadline(590.0, 15.0, 19.0, 24.5, 35.0, minimum=27.0) == pytest.approx(42.75)
     assert stage_deadline(590.0, 15.0, 40.0, 24.5, 35.0) is None      # the final work alone is over budget

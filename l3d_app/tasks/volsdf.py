@@ -41,7 +41,7 @@
   linearly to 0 at ``free_space.until`` x iters when that is set. With a ``time_budget`` the stage
   gets at most half of what the budget leaves after the final work predicted from the timed "before"
   validation (:func:`~l3d_app.tasks.free_space_common.stage_deadline`), and is skipped (logged,
-  ``free_space_skipped`` in the metrics) where that is under 30 s: at 256 px the test views cost
+  ``free_space_skipped`` in the metrics) where that is under 90 s: at 256 px the test views cost
   too much for both.
 * evaluation renders average ``supersample``^2 rays per pixel (the images are SSAA renders).
 
@@ -176,10 +176,14 @@ def volsdf(cfg, ctx) -> dict:
                                   float(cfg.reserve))
         if resuming:     # the saved stretches, or none where the run being resumed skipped its stage
             deadline = 0.0 if ctx.path(FREE_SPACE_FILE).exists() else None
+        before = "unknown" if before_seconds is None else f"{before_seconds:.1f} s"
         if deadline is None:
             ctx.logger.text("free_space", f"skipped: time_budget {float(cfg.time_budget):g} s leaves it under "
-                                          f"{MIN_STAGE_SECONDS:g} s after the predicted evaluation")
+                                          f"{MIN_STAGE_SECONDS:g} s after the predicted evaluation (before "
+                                          f"validation {before} x {1 + evals_after:.1f})")
         else:
+            ctx.logger.text("free_space", f"stage until {deadline:.1f} s of the task (0: no limit; before "
+                                          f"validation {before} x {1 + evals_after:.1f})")
             with ctx.stopwatch.stage("free_space"):
                 free = fit_free_rays(fs, ctx, data, box, flat_o, torch.nn.functional.normalize(flat_d, dim=-1),
                                      flat_rgb, cfg.learn_background, deadline, resuming)
