@@ -123,7 +123,7 @@ def test_steps_must_be_auto_or_a_count(compose, value):
     from l3d_app.tasks.free_space_common import check_free_space_config
     cfg = compose("task=volsdf")
     cfg.free_space.steps = value
-    with pytest.raises(UserError, match="free_space.steps must be a number >= 0"):
+    with pytest.raises(UserError, match="free_space.steps must be auto or a number >= 0"):
         check_free_space_config(cfg.free_space)
 
 

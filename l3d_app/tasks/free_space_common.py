@@ -37,8 +37,9 @@ def check_free_space_config(cfg) -> None:
     """One line, exit 2, before any data is read: the stage's knobs (``cfg`` = ``free_space``)."""
     named = {f"free_space.{k}": cfg.get(k) for k in ("steps", "auto_steps", "batch_rays", "opacity", "margin",
                                                       "margin_beta", "points", "weight", "chunk", "max_rays")}
-    if named["free_space.steps"] != "auto":
-        require_nonnegative(named, "free_space.steps")
+    steps = named["free_space.steps"]
+    if steps != "auto" and (isinstance(steps, bool) or not isinstance(steps, (int, float)) or steps < 0):
+        raise UserError(f"free_space.steps must be auto or a number >= 0, got {steps!r}")
     require_nonnegative(named, "free_space.auto_steps", "free_space.margin", "free_space.margin_beta",
                         "free_space.weight", "free_space.max_rays")
     require_positive(named, "free_space.batch_rays", "free_space.points", "free_space.chunk", "free_space.opacity")
