@@ -66,7 +66,7 @@ def resolve_free_space(cfg, density: str):
 MIN_STAGE_SECONDS = 90.0
 """A stage the budget gives less wall time than this is skipped. Not tuned: the shortest full 600-step
 stage measured on the development scenes took 79 s (its first ~35 s the occupancy sampler's warm-up,
-then a read-off of every training ray, 15-40 s), rounded up; a first setting of 30 s stopped the stage
+and after the fit a read-off of up to 2M training rays: 42 s on `dev256` after a 32-step fit), rounded up; a first setting of 30 s stopped the stage
 on `dev256` inside its warm-up (32 steps) and still paid the read-off (docs/measured/volsdf.md)."""
 
 
