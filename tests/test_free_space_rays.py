@@ -101,3 +101,68 @@ def test_carving_on_free_segments_shrinks_a_sphere_out_of_them():
         occupied_volume(free.sample(256, g)[0].norm(dim=-1) - radius).backward()
         opt.step()
     assert 0.49 < float(radius.detach()) <= 0.56                   # just out of the stretch [-1, -0.5], not beyond
+
+
+def _three_rays():
+    o = torch.tensor([[-3.0, 0.0, 0.0], [-3.0, 0.3, 0.0], [0.6, -3.0, 0.2]], dtype=torch.float64)
+    d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
+    return FreeRays.from_distances(o, d, torch.tensor([3.2, math.inf, 2.7], dtype=torch.float64), BOX, margin=0.05)
+
+
+def _shell(points):      # a loss term living on a thin shell about x = 0.1 (as a free loss lives near surfaces)
+    return torch.exp(-(points[:, 0] - 0.1).abs() / 0.02)
+
+
+def test_resampled_free_points_keep_the_expectation_and_cut_its_variance():
+    """E[mean(g(x) w)] under importance resampling equals the uniform draw's E[g] (a float64 quadrature
+    along each free segment), for a g on a thin shell; the resampled estimate's spread is far smaller."""
+    free = _three_rays()
+    t = torch.linspace(0, 1, 200001, dtype=torch.float64)
+    want = 0.0
+    for i in range(len(free)):           # E over the uniform draw: mean over rays of the segment-average of g x length
+        pts = free.origins[i] + (free.near[i] + t * (free.far[i] - free.near[i]))[:, None] * free.dirs[i]
+        length = free.far[i] - free.near[i]
+        want += float(torch.trapezoid(_shell(pts) * length, t)) / len(free)
+    g = torch.Generator().manual_seed(3)
+    uniform, resampled = [], []
+    for _ in range(400):
+        pts, length = free.sample(256, g)
+        uniform.append(float((_shell(pts) * length).mean()))
+        pts, length, w = free.sample_resampled(256, 16, _shell, g)
+        assert float(w.max()) <= 2.0 + 1e-12
+        resampled.append(float((_shell(pts) * length * w).mean()))
+    uniform, resampled = torch.tensor(uniform, dtype=torch.float64), torch.tensor(resampled, dtype=torch.float64)
+    for est in (uniform, resampled):     # within 4 standard errors of the quadrature
+        assert abs(float(est.mean()) - want) < 4 * float(est.std()) / math.sqrt(len(est)) + 1e-9
+    assert float(resampled.std()) < 0.5 * float(uniform.std())
+
+
+def test_resampling_without_the_proposal_is_the_uniform_draw():
+    """mix 0: every weight is 1 and the points are uniform candidates (the x-mean of the draw as
+    :meth:`sample`'s: rays 1 and 2 along x, ray 3 at x = 0.1)."""
+    free = _three_rays()
+    pts, length, w = free.sample_resampled(30000, 4, _shell, torch.Generator().manual_seed(4), mix=0.0)
+    assert torch.all(w == 1.0)
+    want = (float(free.near[0] + free.far[0]) / 2 - 3.0 + float(free.near[1] + free.far[1]) / 2 - 3.0 + 0.6) / 3
+    assert abs(float(pts[:, 0].mean()) - want) < 0.01
+    with pytest.raises(ValueError, match="mix"):
+        free.sample_resampled(8, 2, _shell, None, mix=1.0)
+
+
+def test_carving_with_resampled_points_stops_where_the_uniform_draw_does():
+    """The sphere-carving case above with the points drawn near the current surface
+    (near_surface_weight): the loss has the same expectation, so the radius ends at the stretch's end."""
+    from l3d_app.render.free_space import near_surface_weight
+    o = torch.tensor([[-3.0, 0.0, 0.0]])
+    free = FreeRays.from_distances(o, torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([2.55]), BOX, margin=0.05)
+    radius = torch.nn.Parameter(torch.tensor(0.8))
+    opt = torch.optim.SGD([radius], lr=0.05)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(300):
+        opt.zero_grad()
+        pts, length, w = free.sample_resampled(256, 8, lambda p: near_surface_weight(p.norm(dim=-1) - radius, 0.05), g)
+        (torch.relu(radius - pts.norm(dim=-1)) * w).mean().backward()
+        opt.step()
+    assert 0.49 < float(radius.detach()) <= 0.56
+    torch.testing.assert_close(near_surface_weight(torch.tensor([0.0, 0.1, -0.1]), 0.1),
+                               torch.tensor([1.0, math.exp(-1), math.exp(-1)]))

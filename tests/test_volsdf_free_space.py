@@ -96,6 +96,10 @@ def test_free_space_losses_against_the_laplace_cdf_by_hand():
     assert float(free_space_loss("occupancy", f, length, dens)) == pytest.approx(occupancy, rel=1e-6)
     assert float(free_space_loss("density", f, length, dens)) == pytest.approx(10 * occupancy, rel=1e-6)
     assert float(free_space_loss("outside", f, length, dens)) == pytest.approx(0.1 / 3, rel=1e-12)
+    w = torch.tensor([2.0, 0.5, 1.0], dtype=torch.float64)     # importance weights multiply each point's term
+    weighted = (psi[0] * 1 * 2.0 + psi[1] * 2 * 0.5 + psi[2] * 1 * 1.0) / 3
+    assert float(free_space_loss("occupancy", f, length, dens, w)) == pytest.approx(weighted, rel=1e-6)
+    assert float(free_space_loss("outside", f, length, dens, w)) == pytest.approx(0.1 * 0.5 / 3, rel=1e-12)
 
 
 def test_free_space_weight_fades_linearly_to_zero_at_until():
@@ -150,3 +154,12 @@ def test_a_budget_the_evaluation_needs_skips_the_stage(compose, tmp_path):
     free = json.loads((tmp_path / "free" / "metrics.json").read_text())
     assert free["free_space_skipped"] is False and free["free_space_rays"] > 0
     assert (tmp_path / "free" / "free_space.pt").exists()
+
+
+@pytest.mark.parametrize("override,message", [("free_space.proposal=near", "free_space.proposal must be uniform or surface"),
+                                              ("free_space.candidates=0", "free_space.candidates must be an integer >= 1"),
+                                              ("free_space.mix=1", r"free_space.mix must lie in \[0, 1\)")])
+def test_proposal_knobs_are_checked(compose, override, message):
+    from l3d_app.tasks.free_space_common import check_free_space_config
+    with pytest.raises(UserError, match=message):
+        check_free_space_config(compose("task=volsdf", override).free_space)

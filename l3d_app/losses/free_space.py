@@ -23,6 +23,8 @@ the solid, smoothed over ``softness`` world units; its gradient sits at the boun
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 
 
@@ -47,12 +49,17 @@ def fade_to_zero(progress: float, until) -> float:
     return max(0.0, 1.0 - float(progress) / float(until))
 
 
-def free_stretch_loss(kind: str, f: torch.Tensor, length: torch.Tensor, density) -> torch.Tensor:
+def free_stretch_loss(kind: str, f: torch.Tensor, length: torch.Tensor, density,
+                      weights: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The loss at (N,) SDF values ``f`` of points on known-free stretches of (N,) ``length``
     (world units): ``outside`` mean(relu(-f)); ``density`` the mean optical depth of a stretch
     (density(f) x length, 1-point estimate); ``occupancy`` the same over alpha (Psi_beta(-f) x length:
-    as strong as ``density`` early, weaker as beta anneals)."""
+    as strong as ``density`` early, weaker as beta anneals). ``weights`` (N,): importance weights
+    of resampled points (:meth:`~l3d_app.render.free_space.FreeRays.sample_resampled`), each
+    point's term multiplied by its weight (None: 1)."""
     if kind == "outside":
-        return occupied_volume(f)
-    tau = density(f) * length
-    return tau.mean() if kind == "density" else (tau / density.alpha).mean()
+        term = torch.relu(-f)
+    else:
+        tau = density(f) * length
+        term = tau if kind == "density" else tau / density.alpha
+    return (term if weights is None else term * weights).mean()

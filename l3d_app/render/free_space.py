@@ -12,7 +12,7 @@ Nothing is said about what no ray passes through (hidden interiors, the unseen u
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Sequence, Tuple
+from typing import Callable, Optional, Sequence, Tuple
 
 import torch
 
@@ -53,6 +53,15 @@ def free_distances(field, estimator, origins: torch.Tensor, dirs: torch.Tensor, 
     return torch.cat(out) if out else origins.new_zeros(0)
 
 
+def near_surface_weight(sdf: torch.Tensor, width: float) -> torch.Tensor:
+    """``exp(-|sdf| / width)`` (same shape as ``sdf``, world units in): up to a constant the
+    derivative of VolSDF's ``Psi_beta(-f)`` in ``f`` at ``beta = width``, i.e. where an occupancy or
+    density loss on free points has a gradient. A proposal for :meth:`FreeRays.sample_resampled`."""
+    if not float(width) > 0:
+        raise ValueError(f"width must be > 0, got {width}")
+    return torch.exp(-sdf.abs() / float(width))
+
+
 @dataclass
 class FreeRays:
     """Training rays with a known free segment ``[near, far]`` (world units along unit ``dirs``).
@@ -88,3 +97,29 @@ class FreeRays:
         length = (self.far[i] - float(shorten) - self.near[i]).clamp_min(0.0)
         t = self.near[i] + rand((n,), generator, dev) * length
         return self.origins[i] + t[:, None] * self.dirs[i], length
+
+    def sample_resampled(self, n: int, candidates: int, proposal: Callable[[torch.Tensor], torch.Tensor],
+                         generator: Optional[torch.Generator] = None, shorten: float = 0.0,
+                         mix: float = 0.5) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Importance resampling of :meth:`sample`: the same expectation, drawn where it matters.
+
+        ``candidates`` x ``n`` points are drawn as :meth:`sample` draws them, each gets the weight
+        ``q = mix * w / mean(w) + (1 - mix)`` with ``w = proposal(points) * length`` >= 0 (e.g. a
+        cheap estimate of the loss's gradient there), and ``n`` of them are drawn with
+        replacement in proportion to ``q``. Returns (n, 3) points, (n,) lengths and (n,)
+        importance weights ``1 / q``: for any ``g``, ``mean(g(points) * weights)`` is an unbiased
+        estimate of ``mean(g)`` over :meth:`sample`'s points (defensive mixture: every weight is at
+        most ``1 / (1 - mix)``, so the variance is never more than that factor above the uniform
+        draw's, and far below it where ``g`` lives on a small part of the free space).
+        """
+        if not 0.0 <= float(mix) < 1.0:
+            raise ValueError(f"mix must lie in [0, 1), got {mix}")
+        pts, length = self.sample(int(n) * int(candidates), generator, shorten)
+        with torch.no_grad():
+            w = proposal(pts).clamp_min(0.0) * length
+            mean = w.mean()
+            q = (float(mix) * w / mean + (1.0 - float(mix))) if float(mean) > 0 else torch.ones_like(w)
+            cdf = torch.cumsum(q.double(), 0)
+            u = rand((int(n),), generator, pts.device, dtype=torch.float64) * cdf[-1]
+            j = torch.searchsorted(cdf, u, right=True).clamp_max(q.shape[0] - 1)
+        return pts[j], length[j], (1.0 / q[j]).to(pts.dtype)

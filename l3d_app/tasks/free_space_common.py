@@ -43,6 +43,13 @@ def check_free_space_config(cfg) -> None:
     require_nonnegative(named, "free_space.auto_steps", "free_space.margin", "free_space.margin_beta",
                         "free_space.weight", "free_space.max_rays")
     require_positive(named, "free_space.batch_rays", "free_space.points", "free_space.chunk", "free_space.opacity")
+    if str(cfg.get("proposal")) not in ("uniform", "surface"):
+        raise UserError(f"free_space.proposal must be uniform or surface, got {cfg.get('proposal')!r}")
+    cand, mix = cfg.get("candidates"), cfg.get("mix")
+    if isinstance(cand, bool) or not isinstance(cand, int) or cand < 1:
+        raise UserError(f"free_space.candidates must be an integer >= 1, got {cand!r}")
+    if isinstance(mix, bool) or not isinstance(mix, (int, float)) or not 0 <= mix < 1:
+        raise UserError(f"free_space.mix must lie in [0, 1), got {mix!r}")
     if str(cfg.get("loss")) not in ("occupancy", "density", "outside"):
         raise UserError(f"free_space.loss must be occupancy, density or outside, got {cfg.get('loss')!r}")
     until = cfg.get("until")

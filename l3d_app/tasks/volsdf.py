@@ -85,6 +85,7 @@ from l3d_app.models.sdf_grid import pretrain_field
 from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
 from l3d_app.render.evaluation import render_views
 from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
+from l3d_app.render.free_space import near_surface_weight
 from l3d_app.render.rgbd import true_depth_maps
 from l3d_app.render.sdf_volume import render_sdf_rays
 from l3d_app.render.sphere_tracing import render_sdf_shaded
@@ -190,6 +191,13 @@ def volsdf(cfg, ctx) -> dict:
             if free is None:     # interrupted during the stage: nothing trained yet
                 return {"interrupted_in": "free_space"}
 
+    cache = getattr(sampler, "cache", None)
+    half_cell = 0.5 * float(((cache.hi - cache.lo) / (cache.resolution - 1)).max()) if cache is not None else 0.0
+
+    def proposal(points: torch.Tensor) -> torch.Tensor:     # free_space.proposal=surface: where the loss has a gradient
+        width = float(dens.beta) if hasattr(dens, "beta") else 1.0 / float(dens.s)
+        return near_surface_weight((cache if cache is not None else model.sdf)(points), max(width, half_cell))
+
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
         stats["_t0"], stats["_c0"] = time.perf_counter(), time.process_time()
         nominal = horizon.nominal(step)      # = step unless the time budget binds
@@ -224,9 +232,13 @@ def volsdf(cfg, ctx) -> dict:
         w_now = w_carve * fade_to_zero(nominal / max(int(cfg.iters), 1), fs.get("until"))
         if free is not None and len(free) and w_now > 0:   # points some training ray passes before any surface
             shorten = float(fs.margin_beta) * float(dens.beta) if float(fs.margin_beta) > 0 else 0.0
-            pts, length = free.sample(int(fs.points), ctx.generator, shorten)
+            if str(fs.proposal) == "surface":     # the same loss, its points drawn where it has a gradient
+                pts, length, iw = free.sample_resampled(int(fs.points), int(fs.candidates), proposal,
+                                                        ctx.generator, shorten, float(fs.mix))
+            else:
+                (pts, length), iw = free.sample(int(fs.points), ctx.generator, shorten), None
             f_free = model.sdf(pts)
-            carve = free_stretch_loss(str(fs.loss), f_free, length, dens)
+            carve = free_stretch_loss(str(fs.loss), f_free, length, dens, iw)
             loss, logs["free_space"] = loss + w_now * carve, carve.detach()
         stats["samples_per_ray"] = float(out["samples_per_ray"])
         stats["fine_samples_per_ray"] = float(out["fine_samples_per_ray"])
