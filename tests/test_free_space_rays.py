@@ -7,7 +7,6 @@ import math
 import pytest
 import torch
 
-from l3d_app.losses.free_space import occupied_volume
 from l3d_app.render.estimators.stratified import StratifiedEstimator
 from l3d_app.render.free_space import FreeRays, free_distances, opacity_distance
 
@@ -88,9 +87,22 @@ def test_free_segments_follow_the_box_and_the_margin():
     assert abs(float(pts[~first, 0].mean()) - (-0.75)) < 0.01
 
 
-def test_carving_on_free_segments_shrinks_a_sphere_out_of_them():
+def _uniform_draw(free, radius, g):
+    pts = free.sample(256, g)[0]
+    return pts, torch.ones(pts.shape[0])
+
+
+def _resampled_draw(free, radius, g):
+    from l3d_app.render.free_space import near_surface_weight
+    pts, _, w = free.sample_resampled(256, 8, lambda p: near_surface_weight(p.norm(dim=-1) - radius, 0.05), g)
+    return pts, w
+
+
+@pytest.mark.parametrize("draw", [_uniform_draw, _resampled_draw])
+def test_carving_on_free_segments_shrinks_a_sphere_out_of_them(draw):
     """A sphere of radius 0.8 about the origin, rays along +x free up to x = -0.5: the loss
-    mean(relu(-f)) at points drawn on the free stretch leaves the radius at the stretch's end."""
+    mean(relu(-f)) at points drawn on the free stretch (uniformly, or resampled near the current
+    surface with importance weights: the same expectation) leaves the radius at the stretch's end."""
     o = torch.tensor([[-3.0, 0.0, 0.0]])
     free = FreeRays.from_distances(o, torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([2.55]), BOX, margin=0.05)
     radius = torch.nn.Parameter(torch.tensor(0.8))
@@ -98,7 +110,8 @@ def test_carving_on_free_segments_shrinks_a_sphere_out_of_them():
     g = torch.Generator().manual_seed(0)
     for _ in range(300):
         opt.zero_grad()
-        occupied_volume(free.sample(256, g)[0].norm(dim=-1) - radius).backward()
+        pts, w = draw(free, radius, g)
+        (torch.relu(radius - pts.norm(dim=-1)) * w).mean().backward()
         opt.step()
     assert 0.49 < float(radius.detach()) <= 0.56                   # just out of the stretch [-1, -0.5], not beyond
 
@@ -149,20 +162,9 @@ def test_resampling_without_the_proposal_is_the_uniform_draw():
         free.sample_resampled(8, 2, _shell, None, mix=1.0)
 
 
-def test_carving_with_resampled_points_stops_where_the_uniform_draw_does():
-    """The sphere-carving case above with the points drawn near the current surface
-    (near_surface_weight): the loss has the same expectation, so the radius ends at the stretch's end."""
+def test_near_surface_weight_is_the_laplace_shape():
     from l3d_app.render.free_space import near_surface_weight
-    o = torch.tensor([[-3.0, 0.0, 0.0]])
-    free = FreeRays.from_distances(o, torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([2.55]), BOX, margin=0.05)
-    radius = torch.nn.Parameter(torch.tensor(0.8))
-    opt = torch.optim.SGD([radius], lr=0.05)
-    g = torch.Generator().manual_seed(0)
-    for _ in range(300):
-        opt.zero_grad()
-        pts, length, w = free.sample_resampled(256, 8, lambda p: near_surface_weight(p.norm(dim=-1) - radius, 0.05), g)
-        (torch.relu(radius - pts.norm(dim=-1)) * w).mean().backward()
-        opt.step()
-    assert 0.49 < float(radius.detach()) <= 0.56
     torch.testing.assert_close(near_surface_weight(torch.tensor([0.0, 0.1, -0.1]), 0.1),
                                torch.tensor([1.0, math.exp(-1), math.exp(-1)]))
+    with pytest.raises(ValueError, match="width"):
+        near_surface_weight(torch.zeros(1), 0.0)
