@@ -36,7 +36,8 @@
   (:mod:`~l3d_app.tasks.free_space_common`) marks, on each training ray, the stretch before its
   opacity reaches ``free_space.opacity`` (less ``free_space.margin``, and less ``free_space.margin_beta``
   x the current beta); each step adds
-  ``free_space.weight`` x a loss at ``free_space.points`` points drawn on those stretches (what a
+  ``free_space.weight`` x a loss at ``free_space.points`` points drawn on those stretches (uniformly,
+  or with ``free_space.proposal=surface`` importance-resampled near the surface, the same expectation; what a
   ray passes through before any surface is empty; :func:`~l3d_app.losses.free_space.free_stretch_loss`), the weight falling
   linearly to 0 at ``free_space.until`` x iters when that is set. With a ``time_budget`` the stage
   gets at most half of what the budget leaves after the final work predicted from the timed "before"
