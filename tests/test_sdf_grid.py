@@ -290,3 +290,39 @@ def test_colour_grid_feeds_colour_only():
 def test_non_positive_radius_or_fd_step_is_a_user_error(kw):
     with pytest.raises(UserError, match="radius > 0 and fd_step > 0"):
         SDFGridField(scene_box=BOX, n_levels=2, base_resolution=4, max_resolution=8, log2_hashmap_size=10, **kw)
+
+
+def test_evaluation_sample_counts_apply_without_gradients_only():
+    """eval_n_coarse / eval_n_fine: a no-grad render places that many samples (and reports them),
+    a training render keeps n_coarse / n_fine; with enough of them the evaluation render of an
+    analytic sphere comes closer to a dense one than the training counts' does."""
+    sph = Sphere(0.5)
+    dens = LaplaceDensity(0.005, None, learnable=False, beta_min=0.0)
+    torch.manual_seed(2)
+    o = torch.nn.functional.normalize(torch.randn(300, 3), dim=-1) * 2.5
+    aim = torch.nn.functional.normalize(torch.randn(300, 3), dim=-1) * torch.rand(300, 1) * 0.6
+    d = torch.nn.functional.normalize(aim - o, dim=-1)
+    calls = {"n": 0}
+
+    def colour(p, v):
+        calls["n"] += p.shape[0]
+        return sph(p), (p * 0.5 + 0.5).clamp(0, 1)           # a colour that varies over the surface
+
+    def render(est, grad):
+        est.update(0, SimpleNamespace(sdf=sph), force=True)
+        calls["n"] = 0
+        with torch.set_grad_enabled(grad):
+            out = render_sdf_rays(colour, o, d, est, dens, background=torch.ones(3))
+        return out, calls["n"]
+
+    kw = dict(resolution=32, skip_opacity=0.0)
+    base, n_base = render(SDFCacheProposal(BOX, n_coarse=64, n_fine=8, **kw), False)
+    more, n_more = render(SDFCacheProposal(BOX, n_coarse=64, n_fine=8, eval_n_coarse=128, eval_n_fine=32, **kw), False)
+    train, n_train = render(SDFCacheProposal(BOX, n_coarse=64, n_fine=8, eval_n_coarse=128, eval_n_fine=32, **kw), True)
+    dense, _ = render(SDFCacheProposal(BOX, n_coarse=512, n_fine=128, **kw), False)
+    assert (n_base, n_more, n_train) == (300 * 8, 300 * 32, 300 * 8)
+    assert float(more["fine_samples_per_ray"]) == 32 and float(train["fine_samples_per_ray"]) == 8
+    err = lambda out: float((out["color"] - dense["color"]).abs().mean())  # noqa: E731
+    assert err(more) < 0.5 * err(base)
+    with pytest.raises(ValueError, match="eval_n_fine"):
+        SDFCacheProposal(BOX, eval_n_fine=1)

@@ -34,6 +34,8 @@ class SDFCacheProposal(Estimator):
        opacities past analytic spheres (radius 0.5 and 1, beta 0.005 and 0.02) within 0.15 of
        a dense float64 integral (``tests/test_sdf_grid.py``); uncapped they were up to 0.5 off.
 
+    Evaluation renders (gradients off) use ``eval_n_coarse`` / ``eval_n_fine`` (None: the training
+    counts): more samples where no gradient is paid for.
     While training (gradients on) every ray keeps exactly ``n_fine`` samples; a ray that misses
     the box gets zero-length segments at its start (optical depth 0, background colour), so
     batches keep one shape. In evaluation renders (gradients off) a ray whose coarse opacity is
@@ -44,10 +46,16 @@ class SDFCacheProposal(Estimator):
     """
 
     def __init__(self, scene_box: Box, n_coarse: int = 128, n_fine: int = 16, resolution: int = 64,
-                 every: int = 32, padding: float = 1e-3, skip_opacity: float = 1e-4, max_segment: float = 4.0):
+                 every: int = 32, padding: float = 1e-3, skip_opacity: float = 1e-4, max_segment: float = 4.0,
+                 eval_n_coarse: Optional[int] = None, eval_n_fine: Optional[int] = None):
         super().__init__(scene_box)
-        if int(n_coarse) < 2 or int(n_fine) < 2:
-            raise ValueError(f"n_coarse and n_fine must be >= 2, got {n_coarse}, {n_fine}")
+        eval_n_coarse = n_coarse if eval_n_coarse is None else eval_n_coarse
+        eval_n_fine = n_fine if eval_n_fine is None else eval_n_fine
+        if min(int(n_coarse), int(n_fine), int(eval_n_coarse), int(eval_n_fine)) < 2:
+            raise ValueError(f"n_coarse, n_fine, eval_n_coarse and eval_n_fine must be >= 2, got {n_coarse}, "
+                             f"{n_fine}, {eval_n_coarse}, {eval_n_fine}")
+        self.eval_n_coarse, self.eval_n_fine = int(eval_n_coarse), int(eval_n_fine)
+        self._counts = (int(n_coarse), int(n_fine))
         if int(every) < 1:
             raise ValueError(f"every must be >= 1, got {every}")
         if not 0.0 <= float(skip_opacity) < 1.0:
@@ -71,16 +79,18 @@ class SDFCacheProposal(Estimator):
         if density is None or (self.cache is None and field is None):
             raise ValueError("the sdf_cache estimator needs density= (and field= without a cache)")
         evaluating = not torch.is_grad_enabled()     # read before the no_grad block below
+        n_coarse, n_fine = (self.eval_n_coarse, self.eval_n_fine) if evaluating else (self.n_coarse, self.n_fine)
+        self._counts = (n_coarse, n_fine)
         near, far, hit = self.bounds(origins, dirs)
-        t_c = stratified_samples(near, far, self.n_coarse, perturb=perturb, generator=generator)
+        t_c = stratified_samples(near, far, n_coarse, perturb=perturb, generator=generator)
         with torch.no_grad():
             pts = origins[:, None, :] + t_c[..., None] * dirs[:, None, :]
             f_c = (self.cache if self.cache is not None else field.sdf)(pts.reshape(-1, 3)).reshape(t_c.shape)
-            spacing = (far - near)[:, None] / max(self.n_coarse - 1, 1)
+            spacing = (far - near)[:, None] / max(n_coarse - 1, 1)
             w_c = _coarse_weights(density, f_c, t_c, far, 0.5 * spacing) * hit[:, None]
             edges = torch.cat([t_c, far[:, None]], dim=-1)   # each coarse sample owns [t_i, t_{i+1}]
             edges = torch.maximum(edges, torch.cat([edges[:, :1], edges[:, :-1]], dim=-1))
-            t = sample_pdf(edges, w_c, self.n_fine, perturb=perturb, generator=generator, padding=self.padding)
+            t = sample_pdf(edges, w_c, n_fine, perturb=perturb, generator=generator, padding=self.padding)
             keep = torch.ones_like(t, dtype=torch.bool)
             if self.skip_opacity > 0 and evaluating:     # evaluation: empty rays skip the field
                 keep = (w_c.sum(-1) >= self.skip_opacity)[:, None].expand_as(t)
@@ -93,8 +103,9 @@ class SDFCacheProposal(Estimator):
         """Evaluations per ray of the last batch, averaged over all rays: coarse (cache look-ups
         or SDF calls) + fine, and fine alone, counting rays inside the box (and, in evaluation
         renders, only those that kept their fine samples)."""
-        return {"samples_per_ray": self._hit_fraction * self.n_coarse + self._fine_fraction * self.n_fine,
-                "fine_samples_per_ray": self._fine_fraction * self.n_fine}
+        n_coarse, n_fine = self._counts
+        return {"samples_per_ray": self._hit_fraction * n_coarse + self._fine_fraction * n_fine,
+                "fine_samples_per_ray": self._fine_fraction * n_fine}
 
 
 def _coarse_weights(density, sdf: torch.Tensor, t: torch.Tensor, far: torch.Tensor, widen: torch.Tensor
