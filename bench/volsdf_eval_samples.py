@@ -1,0 +1,67 @@
+"""Validation PSNR and render seconds of a finished volsdf run re-rendered with other sample counts.
+
+    python bench/volsdf_eval_samples.py RUN_DIR [--counts 128/16 128/32 256/32] [--views 4] [--threads 2]
+
+Each ``C/F`` renders the run's first ``--views`` validation views at one ray per pixel with
+``sampler.n_coarse=C`` and ``sampler.n_fine=F`` (the evaluation counts ``sampler.eval_n_coarse`` /
+``sampler.eval_n_fine`` set in a run apply the same way), from the run's checkpoint, with the cache
+refreshed from the final field as volsdf's own evaluation does. Prints one line per count: the mean
+PSNR over the views (dB) and the wall seconds of the render. Validation views only: what it finds
+may choose a setting; test views are not read.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--counts", nargs="+", default=["128/16", "128/32", "256/32"])
+    ap.add_argument("--views", type=int, default=4)
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    import l3d_app.models  # noqa: F401  (registries)
+    import l3d_app.render  # noqa: F401
+    from omegaconf import OmegaConf
+    from l3d_app.registry import DATASETS
+    from l3d_app.tasks.render_path import ADAPTERS
+
+    torch.set_num_threads(args.threads)
+    cfg_file, ckpt = args.run / ".hydra" / "config.yaml", args.run / "checkpoint.pt"
+    if not cfg_file.is_file() or not ckpt.is_file():
+        raise SystemExit(f"{args.run}: not a finished run (needs .hydra/config.yaml and checkpoint.pt)")
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)["trainable"]
+    for spec in args.counts:
+        try:
+            n_coarse, n_fine = (int(x) for x in spec.split("/"))
+        except ValueError:
+            raise SystemExit(f"--counts takes COARSE/FINE pairs such as 128/16, got {spec!r}")
+        conf = OmegaConf.load(cfg_file)
+        if str(conf.get("task_name")) != "volsdf":
+            raise SystemExit(f"{args.run}: a {conf.get('task_name')} run, not volsdf")
+        conf.sampler.n_coarse, conf.sampler.n_fine = n_coarse, n_fine
+        conf.sampler.eval_n_coarse, conf.sampler.eval_n_fine = n_coarse, n_fine
+        data = DATASETS.build(conf.data)
+        render = ADAPTERS["volsdf"](conf, state, data, torch.device("cpu"), 4096)
+        views = data.val[: args.views]
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            out = render(data.cameras[views])
+        seconds = time.perf_counter() - t0
+        truth = data.images[views]
+        mse = ((out["color"].reshape(truth.shape) - truth) ** 2).mean(dim=(1, 2, 3))
+        print(f"{args.run.name} {n_coarse}/{n_fine}: val {float((-10 * torch.log10(mse)).mean()):.2f} dB over "
+              f"{len(views)} views, {seconds:.1f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()
