@@ -175,17 +175,22 @@ def test_laplace_density_learnable_beta_and_tied_alpha():
     assert math.isfinite(float(fixed(sdf).sum()))
 
 
+def _rays_at_a_ball(n: int, radius: float, seed: int):
+    """n rays from random points 2.5 from the origin towards random points of a ball of ``radius``."""
+    torch.manual_seed(seed)
+    o = torch.nn.functional.normalize(torch.randn(n, 3), dim=-1) * 2.5
+    aim = torch.nn.functional.normalize(torch.randn(n, 3), dim=-1) * torch.rand(n, 1) * radius
+    return o, torch.nn.functional.normalize(aim - o, dim=-1)
+
+
 def test_evaluation_renders_skip_the_field_on_rays_that_pass_no_surface():
     """Without gradients, rays whose coarse opacity is below ``skip_opacity`` get no fine sample:
     the image equals the full render (every ray sampled) to within that opacity, the rays that
     miss the sphere cost no field evaluation, and training renders (grad on) never skip."""
     sph = Sphere(0.5)
     dens = LaplaceDensity(0.01, None, learnable=False, beta_min=0.0)
-    torch.manual_seed(1)
-    o = torch.nn.functional.normalize(torch.randn(200, 3), dim=-1) * 2.5
     # aim at points spread over a ball of radius 1.4 about the sphere: some rays hit, some pass by
-    aim = torch.nn.functional.normalize(torch.randn(200, 3), dim=-1) * torch.rand(200, 1) * 1.4
-    d = torch.nn.functional.normalize(aim - o, dim=-1)
+    o, d = _rays_at_a_ball(200, 1.4, seed=1)
     b = (o * d).sum(-1)
     miss_by = (o.norm(dim=-1) ** 2 - b ** 2).sqrt() - 0.5          # closest approach to the surface
     calls = {"n": 0}
@@ -298,10 +303,7 @@ def test_evaluation_sample_counts_apply_without_gradients_only():
     analytic sphere comes closer to a dense one than the training counts' does."""
     sph = Sphere(0.5)
     dens = LaplaceDensity(0.005, None, learnable=False, beta_min=0.0)
-    torch.manual_seed(2)
-    o = torch.nn.functional.normalize(torch.randn(300, 3), dim=-1) * 2.5
-    aim = torch.nn.functional.normalize(torch.randn(300, 3), dim=-1) * torch.rand(300, 1) * 0.6
-    d = torch.nn.functional.normalize(aim - o, dim=-1)
+    o, d = _rays_at_a_ball(300, 0.6, seed=2)
     calls = {"n": 0}
 
     def colour(p, v):
