@@ -1,11 +1,13 @@
 """Validation PSNR and render seconds of a finished volsdf run re-rendered with other sample counts.
 
     python bench/volsdf_eval_samples.py RUN_DIR [--counts 128/16 128/32 256/32] [--views 4] [--threads 2]
+                                        [--set density.quadrature=linear ...]
 
 Each ``C/F`` renders the run's first ``--views`` validation views at one ray per pixel with
 ``sampler.n_coarse=C`` and ``sampler.n_fine=F`` (the evaluation counts ``sampler.eval_n_coarse`` /
 ``sampler.eval_n_fine`` set in a run apply the same way), from the run's checkpoint, with the cache
-refreshed from the final field as volsdf's own evaluation does. Prints one line per count: the mean
+refreshed from the final field as volsdf's own evaluation does; ``--set KEY=VALUE`` changes other entries of
+the run's config first (values parsed as YAML). Prints one line per count: the mean
 PSNR over the views (dB) and the wall seconds of the render. Validation views only: what it finds
 may choose a setting; test views are not read.
 """
@@ -18,6 +20,7 @@ import time
 from pathlib import Path
 
 import torch
+import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -28,6 +31,7 @@ def main() -> None:
     ap.add_argument("--counts", nargs="+", default=["128/16", "128/32", "256/32"])
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config entries to change first")
     args = ap.parse_args()
     import l3d_app.models  # noqa: F401  (registries)
     import l3d_app.render  # noqa: F401
@@ -48,6 +52,11 @@ def main() -> None:
         conf = OmegaConf.load(cfg_file)
         if str(conf.get("task_name")) != "volsdf":
             raise SystemExit(f"{args.run}: a {conf.get('task_name')} run, not volsdf")
+        for item in args.set:
+            key, sep, value = item.partition("=")
+            if not sep or not key:
+                raise SystemExit(f"--set takes KEY=VALUE, got {item!r}")
+            OmegaConf.update(conf, key, yaml.safe_load(value), force_add=True)
         conf.sampler.n_coarse, conf.sampler.n_fine = n_coarse, n_fine
         conf.sampler.eval_n_coarse, conf.sampler.eval_n_fine = n_coarse, n_fine
         data = DATASETS.build(conf.data)
@@ -59,7 +68,7 @@ def main() -> None:
         seconds = time.perf_counter() - t0
         truth = data.images[views]
         mse = ((out["color"].reshape(truth.shape) - truth) ** 2).mean(dim=(1, 2, 3))
-        print(f"{args.run.name} {n_coarse}/{n_fine}: val {float((-10 * torch.log10(mse)).mean()):.2f} dB over "
+        print(f"{args.run.name} {n_coarse}/{n_fine}{' ' + ' '.join(args.set) if args.set else ''}: val {float((-10 * torch.log10(mse)).mean()):.2f} dB over "
               f"{len(views)} views, {seconds:.1f} s", flush=True)
 
 

@@ -1,0 +1,88 @@
+"""What a volsdf run's known free space says and what its SDF did with it, on a development scene.
+
+    python bench/diagnose_free_space.py RUN_DIR [--scene outputs/.cache/bench_scenes/ground] [--points 400000]
+
+Needs the run's ``checkpoint.pt``, ``free_space.pt`` (a run with the free-space stage) and ``mesh.ply``.
+1. The loss's points: ``--points`` drawn on the saved free stretches as volsdf draws them at the end
+   (shortened by ``margin_beta`` x beta 0.005), the final SDF there: the share with ``f < 0`` and
+   ``f < 0.02``, and the share of the occupancy loss's integrand (``Psi_beta(-f)`` x length) those carry.
+2. On ``ground`` (its tray's position is written in): for the training rays whose true first hit is
+   the tray's floor, its rim and walls, or elsewhere, the medians of (free distance - true depth),
+   (mesh depth - true depth) and (free distance - mesh depth), along the ray (world units).
+A diagnosis aid for the development scenes; it chooses nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # run from a checkout without installing
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--scene", type=Path, default=REPO / "outputs" / ".cache" / "bench_scenes" / "ground")
+    ap.add_argument("--points", type=int, default=400000)
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    import l3d_app.models  # noqa: F401  (registries)
+    from omegaconf import OmegaConf
+    from l3d_app.data.nerf_formats import blender
+    from l3d_app.geometry.mesh_io import load_mesh
+    from l3d_app.geometry.rays import camera_rays
+    from l3d_app.registry import MODELS
+    from l3d_app.render.densities import laplace_cdf
+    from l3d_app.render.free_space import FreeRays
+    from l3d_app.render.rgbd import true_depth_maps
+
+    torch.set_num_threads(args.threads)
+    for f in ("checkpoint.pt", "free_space.pt", "mesh.ply", ".hydra/config.yaml"):
+        if not (args.run / f).is_file():
+            raise SystemExit(f"{args.run}: no {f} (a volsdf run with the free-space stage is needed)")
+    conf = OmegaConf.load(args.run / ".hydra" / "config.yaml")
+    state = torch.load(args.run / "checkpoint.pt", map_location="cpu", weights_only=False)["trainable"]
+    data = blender(root=str(args.scene), mesh_path="mesh.ply")
+    box = data.scene_box.tolist()
+    model = MODELS.build(conf.model, scene_box=box).eval()
+    model.load_state_dict(state["modules"]["field"])
+    cams = data.cameras[data.train]
+    origins, dirs = camera_rays(cams, normalize=False)                      # (V, H, W, 3), camera z = 1
+    norm = dirs.norm(dim=-1)
+    saved = torch.load(args.run / "free_space.pt", weights_only=True)
+    flat_o, flat_d = origins.reshape(-1, 3), (dirs / norm[..., None]).reshape(-1, 3)
+    free = FreeRays.from_distances(flat_o[saved["index"]], flat_d[saved["index"]], saved["distance"].float(), box,
+                                   float(conf.free_space.margin))
+    beta = 0.005
+    gen = torch.Generator().manual_seed(0)
+    pts, length = free.sample(args.points, gen, float(conf.free_space.margin_beta) * beta)
+    with torch.no_grad():
+        f = torch.cat([model.sdf(p) for p in pts.split(50000)])
+    g = laplace_cdf(-f, beta) * length
+    near = f < 0.02
+    print(f"loss points {len(f)}: f < 0 {float((f < 0).float().mean()):.4f}, f < 0.02 {float(near.float().mean()):.4f}, "
+          f"their share of the integrand {float(g[near].sum() / g.sum()):.3f}")
+    if args.scene.name != "ground":
+        return
+    truth = true_depth_maps(load_mesh(str(args.scene / "mesh.ply")), cams, scale=1) * norm
+    mesh = true_depth_maps(load_mesh(str(args.run / "mesh.ply")), cams, scale=1) * norm
+    hit = origins + dirs / norm[..., None] * torch.nan_to_num(truth, posinf=0.0)[..., None]
+    dist = torch.full((truth.numel(),), float("nan"))
+    dist[saved["index"]] = saved["distance"].float()
+    dist = dist.reshape(truth.shape)
+    l1 = (hit[..., 0] + 0.45).abs() + (hit[..., 1] - 0.4).abs()         # the tray: a square about (-0.45, 0.4)
+    seen = torch.isfinite(truth)
+    floor = seen & (l1 < 0.35) & (hit[..., 2] < -0.3)
+    for name, m in (("tray floor", floor), ("tray rim/walls", seen & (l1 < 0.43) & ~floor), ("elsewhere", seen & (l1 >= 0.43))):
+        ok = m & torch.isfinite(dist) & torch.isfinite(mesh)
+        print(f"{name}: rays {int(m.sum())}; median free - truth {float((dist - truth)[ok].median()):+.3f}, "
+              f"mesh - truth {float((mesh - truth)[ok].median()):+.3f}, free - mesh {float((dist - mesh)[ok].median()):+.3f}")
+
+
+if __name__ == "__main__":
+    main()
