@@ -22,6 +22,7 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
+sys.path.insert(0, str(REPO / "bench"))
 
 
 def main() -> None:
@@ -31,26 +32,16 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=400000)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
-    import l3d_app.models  # noqa: F401  (registries)
-    from omegaconf import OmegaConf
-    from l3d_app.data.nerf_formats import blender
+    from volsdf_run import load_sdf_field
     from l3d_app.geometry.mesh_io import load_mesh
     from l3d_app.geometry.rays import camera_rays
-    from l3d_app.registry import MODELS
     from l3d_app.render.densities import laplace_cdf
     from l3d_app.render.free_space import FreeRays
     from l3d_app.render.rgbd import true_depth_maps
 
     torch.set_num_threads(args.threads)
-    for f in ("checkpoint.pt", "free_space.pt", "mesh.ply", ".hydra/config.yaml"):
-        if not (args.run / f).is_file():
-            raise SystemExit(f"{args.run}: no {f} (a volsdf run with the free-space stage is needed)")
-    conf = OmegaConf.load(args.run / ".hydra" / "config.yaml")
-    state = torch.load(args.run / "checkpoint.pt", map_location="cpu", weights_only=False)["trainable"]
-    data = blender(root=str(args.scene), mesh_path="mesh.ply")
+    conf, data, model = load_sdf_field(args.run, args.scene, ("free_space.pt", "mesh.ply"))
     box = data.scene_box.tolist()
-    model = MODELS.build(conf.model, scene_box=box).eval()
-    model.load_state_dict(state["modules"]["field"])
     cams = data.cameras[data.train]
     origins, dirs = camera_rays(cams, normalize=False)                      # (V, H, W, 3), camera z = 1
     norm = dirs.norm(dim=-1)

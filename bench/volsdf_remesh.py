@@ -16,8 +16,6 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 sys.path.insert(0, str(REPO / "bench"))
@@ -30,26 +28,15 @@ def main() -> None:
     ap.add_argument("--resolutions", type=int, nargs="+", default=[128, 192, 256])
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
-    import l3d_app.models  # noqa: F401  (registries)
-    from omegaconf import OmegaConf
+    import torch
     from bench_scenes import mesh_scores
-    from l3d_app.data.nerf_formats import blender
-    from l3d_app.registry import MODELS
+    from volsdf_run import load_sdf_field
     from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
     from l3d_app.tasks.field_common import cull_to_training_views
 
     torch.set_num_threads(args.threads)
-    for f in ("checkpoint.pt", ".hydra/config.yaml"):
-        if not (args.run / f).is_file():
-            raise SystemExit(f"{args.run}: no {f} (a finished volsdf run is needed)")
-    if not (args.scene / "mesh.ply").is_file():
-        raise SystemExit(f"{args.scene}: no mesh.ply (a bench scene with its true mesh is needed)")
-    conf = OmegaConf.load(args.run / ".hydra" / "config.yaml")
-    state = torch.load(args.run / "checkpoint.pt", map_location="cpu", weights_only=False)["trainable"]
-    data = blender(root=str(args.scene), mesh_path="mesh.ply")
+    _, data, model = load_sdf_field(args.run, args.scene)
     box = data.scene_box.tolist()
-    model = MODELS.build(conf.model, scene_box=box).eval()
-    model.load_state_dict(state["modules"]["field"])
     out = args.run / "remesh"
     out.mkdir(exist_ok=True)
     for res in args.resolutions:
