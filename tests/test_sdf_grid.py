@@ -328,3 +328,8 @@ def test_evaluation_sample_counts_apply_without_gradients_only():
     assert err(more) < 0.5 * err(base)
     with pytest.raises(ValueError, match="eval_n_fine"):
         SDFCacheProposal(BOX, eval_n_fine=1)
+
+
+def test_sdf_cache_cell_size_is_the_widest_vertex_spacing():
+    cache = SDFGridCache(((-1.0, -2.0, 0.0), (1.0, 2.0, 0.5)), resolution=5)
+    assert cache.cell_size == pytest.approx(1.0)        # y: 4 / (5 - 1)

@@ -30,6 +30,11 @@ class SDFGridCache(torch.nn.Module):
         self.register_buffer("hi", torch.as_tensor(box[1], dtype=torch.float32).reshape(3))
         self.register_buffer("values", torch.zeros(self.resolution, self.resolution, self.resolution))
 
+    @property
+    def cell_size(self) -> float:
+        """The largest spacing of the grid's vertices along an axis (world units)."""
+        return float(((self.hi - self.lo) / (self.resolution - 1)).max())
+
     @torch.no_grad()
     def update(self, sdf_fn: SdfFn, chunk_size: int = 1 << 16) -> None:
         from l3d_app.geometry.marching_cubes import evaluate_grid

@@ -193,7 +193,7 @@ def volsdf(cfg, ctx) -> dict:
                 return {"interrupted_in": "free_space"}
 
     cache = getattr(sampler, "cache", None)
-    half_cell = 0.5 * float(((cache.hi - cache.lo) / (cache.resolution - 1)).max()) if cache is not None else 0.0
+    half_cell = 0.5 * cache.cell_size if cache is not None else 0.0
 
     def proposal(points: torch.Tensor) -> torch.Tensor:     # free_space.proposal=surface: where the loss has a gradient
         width = float(dens.beta) if hasattr(dens, "beta") else 1.0 / float(dens.s)
