@@ -76,6 +76,21 @@ def linear_segment_ends(sdf: torch.Tensor, t_starts: torch.Tensor, t_ends: torch
     return torch.where(ok, sdf + (f_next - sdf) * frac, sdf)
 
 
+def distance_along_ray(sdf: torch.Tensor, grad: torch.Tensor, dirs: torch.Tensor, floor: float) -> torch.Tensor:
+    """(N,) the SDF ``sdf`` (N,) divided by how fast it falls along the ray: ``f / c`` with
+    ``c = |grad f . d| / (|grad f| |d|)`` (``grad`` (N, 3), ``dirs`` (N, 3)), ``c`` floored at ``floor``
+    (in (0, 1]) and held out of the gradient (``d(f/c)/df = 1/c``; nothing flows into the normal).
+
+    Near a locally planar surface ``f / c`` is the distance to it along the ray (world units), whatever
+    the angle; a ray that passes a convex surface (radius ``R``) at distance ``h`` has
+    ``f / c >= sqrt(2 h R)`` (until ``c`` reaches the floor). A zero gradient gives ``c = floor``.
+    """
+    with torch.no_grad():
+        norms = (grad.norm(dim=-1) * dirs.norm(dim=-1)).clamp_min(1e-12)
+        c = ((grad * dirs).sum(-1).abs() / norms).clamp(float(floor), 1.0)
+    return sdf / c
+
+
 def volsdf_density(sdf: torch.Tensor, alpha: Scalar, beta: Scalar) -> torch.Tensor:
     """VolSDF density ``alpha * Psi_beta(-sdf)`` (same shape as ``sdf``).
 
@@ -100,14 +115,23 @@ class LaplaceDensity(torch.nn.Module):
         alpha: density inside (1 / world units) or None for ``1 / beta``.
         learnable: train ``beta`` (with the field's optimiser).
         beta_min: floor of ``beta`` (world units, >= 0).
+        quadrature: ``left`` or ``linear`` (:meth:`optical_depth`).
+        along_ray: the density of the distance to the surface along the ray instead of the SDF
+            (:meth:`sdf_along_ray`, :func:`distance_along_ray`): a surface seen at a grazing angle has
+            the transition in ``t`` of one seen head-on, so silhouettes do not appear outside the zero
+            level set (the bias that shrinks a fitted convex surface by ``~beta ln(sqrt(pi R / 2 beta))``).
+        along_ray_floor: with ``along_ray``, the least ``|n . d|`` (in (0, 1]).
     """
 
     def __init__(self, beta_init: float = 0.1, alpha: Optional[float] = None, learnable: bool = True,
-                 beta_min: float = 1e-4, quadrature: str = "left"):
+                 beta_min: float = 1e-4, quadrature: str = "left", along_ray: bool = False,
+                 along_ray_floor: float = 0.1):
         super().__init__()
         if quadrature not in ("left", "linear"):
             raise ValueError(f"quadrature must be left or linear, got {quadrature!r}")
-        self.quadrature = quadrature
+        if not 0.0 < float(along_ray_floor) <= 1.0:
+            raise ValueError(f"along_ray_floor must lie in (0, 1], got {along_ray_floor}")
+        self.quadrature, self.along_ray, self.along_ray_floor = quadrature, bool(along_ray), float(along_ray_floor)
         if not beta_init > beta_min >= 0:
             raise ValueError(f"LaplaceDensity needs beta_init > beta_min >= 0, got {beta_init}, {beta_min}")
         if alpha is not None and not alpha > 0:
@@ -140,6 +164,16 @@ class LaplaceDensity(torch.nn.Module):
         beta = self.beta
         alpha = 1.0 / beta if self.fixed_alpha is None else float(self.fixed_alpha)
         return volsdf_density(sdf, alpha, beta)
+
+    def sdf_along_ray(self, sdf: torch.Tensor, grad: Optional[torch.Tensor], dirs: torch.Tensor) -> torch.Tensor:
+        """What the density reads at samples (N,) with the field's gradient ``grad`` (N, 3) and ray
+        directions ``dirs`` (N, 3): ``sdf`` itself, or with ``along_ray`` :func:`distance_along_ray`
+        (which needs ``grad``: ValueError without it)."""
+        if not self.along_ray:
+            return sdf
+        if grad is None:
+            raise ValueError("along_ray needs the field's gradient at the samples (a field with an exact gradient)")
+        return distance_along_ray(sdf, grad, dirs, self.along_ray_floor)
 
     def optical_depth(self, sdf: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
                       ray_indices: torch.Tensor, widen: Optional[torch.Tensor] = None) -> torch.Tensor:
@@ -187,11 +221,13 @@ class VolSDFDensity(LaplaceDensity):
         alpha: density inside (1 / world units), or None for ``1 / beta`` (VolSDF).
         quadrature: ``left`` (the density at each segment's start) or ``linear`` (its exact mean along
             a linear SDF to the next sample): :meth:`LaplaceDensity.optical_depth`.
+        along_ray, along_ray_floor: the density of the distance to the surface along the ray
+            (:meth:`LaplaceDensity.sdf_along_ray`).
     """
 
     def __init__(self, beta: float = 0.1, mode: str = "anneal", beta_end: float = 0.005,
                  anneal_fraction: float = 0.8, beta_min: float = 1e-3, alpha: Optional[float] = None,
-                 quadrature: str = "left"):
+                 quadrature: str = "left", along_ray: bool = False, along_ray_floor: float = 0.1):
         if mode not in ("anneal", "learnable", "fixed"):
             raise ValueError(f"density mode must be anneal, learnable or fixed, got {mode!r}")
         if not 0 <= float(beta_min) < min(float(beta), float(beta_end)):
@@ -200,7 +236,8 @@ class VolSDFDensity(LaplaceDensity):
         if not 0.0 <= float(anneal_fraction) <= 1.0:
             raise ValueError(f"anneal_fraction must be in [0, 1], got {anneal_fraction}")
         super().__init__(float(beta), None if alpha is None else float(alpha), learnable=mode == "learnable",
-                         beta_min=float(beta_min), quadrature=str(quadrature))
+                         beta_min=float(beta_min), quadrature=str(quadrature), along_ray=bool(along_ray),
+                         along_ray_floor=float(along_ray_floor))
         self.mode, self.beta_start, self.beta_end = mode, float(beta), float(beta_end)
         self.anneal_fraction = float(anneal_fraction)
 

@@ -19,6 +19,9 @@
   so silhouettes appear ``beta ln(sqrt(pi R / (2 beta)) / ln 2)`` OUTSIDE the zero level set and
   the learned surface shrinks by that much to match the images (0.023 on the 0.28 sphere at
   beta 0.01, measured 0.023-0.026).
+  ``density_along_ray=true`` reads ``f / |n . d|`` instead (the distance to the surface along the ray,
+  :func:`~l3d_app.render.densities.distance_along_ray`): the transition in ``t`` is the same at every angle,
+  so the silhouettes no longer sit outside the zero level set (option; docs/measured/volsdf.md).
 * sampling only near the surface: a trilinear :class:`~l3d_app.render.sdf_volume.SDFGridCache`
   of the SDF (``cache_resolution``^3, refreshed every ``cache_every`` steps, no grad) gives
   ``n_coarse`` look-ups per ray whose VolSDF weights place ``n_fine`` field samples at the
@@ -121,6 +124,9 @@ def volsdf(cfg, ctx) -> dict:
     if int(fs.steps) > 0 and float(fs.margin_beta) > 0 and str(cfg.density.name) != "volsdf":
         raise UserError(f"free_space.margin_beta needs density=volsdf (a Laplace scale beta), got density="
                         f"{cfg.density.name}: use free_space.margin_beta=0")
+    if bool(cfg.density.get("along_ray", False)) and not hasattr(MODELS.get(str(cfg.model.name)), "sdf_rgb_grad"):
+        raise UserError(f"density_along_ray needs a field with an exact gradient at evaluation (model=sdf_grid_field), "
+                        f"got model={cfg.model.name}")
     data = DATASETS.build(cfg.data).to(ctx.device)
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
