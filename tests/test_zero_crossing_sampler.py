@@ -63,10 +63,10 @@ def test_anchored_samples_sit_in_a_transition_the_cache_cannot_resolve():
     dens = LaplaceDensity(beta, None, learnable=False, beta_min=0.0)
     colour = lambda p, v: (sphere.sdf(p), torch.ones(p.shape[0], 3, dtype=D))  # noqa: E731
 
-    def render(anchor):
-        est = SDFCacheProposal(BOX, n_coarse=64, n_fine=16, resolution=16, anchor=anchor)
+    def render(anchor, eval_anchor=None, grad=False):
+        est = SDFCacheProposal(BOX, n_coarse=64, n_fine=16, resolution=16, anchor=anchor, eval_anchor=eval_anchor)
         est.update(0, sphere)
-        with torch.no_grad():
+        with torch.set_grad_enabled(grad):
             out = render_sdf_rays(colour, o, d, est, dens, field=sphere, perturb=True,
                                   generator=torch.Generator().manual_seed(0))
         t = out["t"].reshape(n, 16)
@@ -78,10 +78,16 @@ def test_anchored_samples_sit_in_a_transition_the_cache_cannot_resolve():
     inside0, err0, out0 = render(0)
     assert float((inside0 <= 1).float().mean()) > 0.5 and float(err0.median()) > 2 * float(err.median())
     assert float(err0.max()) > 10 * beta and float(out0["opacity"].min()) < 0.5    # a ray that misses the surface
+    # eval_anchor: the evaluation renders (no grad) only
+    inside_eval, err_eval, _ = render(0, eval_anchor=8)
+    assert torch.equal(inside_eval, inside) and torch.equal(err_eval, err)
+    inside_train, _, out_train = render(0, eval_anchor=8, grad=True)
+    assert torch.equal(inside_train, inside0) and float(out_train["samples_per_ray"]) == pytest.approx(64 + 16)
 
 
 @pytest.mark.parametrize("kw", [dict(anchor=16), dict(anchor=-1), dict(anchor=4, anchor_window=(1.0, 1.0)),
-                                dict(anchor=4, refine_evals=1)])
+                                dict(anchor=4, refine_evals=1), dict(eval_anchor=16),
+                                dict(eval_n_fine=8, eval_anchor=8)])
 def test_bad_anchor_settings_are_refused(kw):
     with pytest.raises(ValueError, match="anchor"):
         SDFCacheProposal(BOX, n_fine=16, **kw)

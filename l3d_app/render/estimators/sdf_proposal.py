@@ -42,7 +42,7 @@ class SDFCacheProposal(Estimator):
        spacing without a cache), then ``anchor`` stratified samples over ``anchor_window`` (in units
        of the density's transition width: ``beta``, or ``1/s`` for NeuS) around it. A transition
        narrower than the cache's error still gets its samples. Rays with no crossing draw them from
-       the weights like the rest.
+       the weights like the rest. ``eval_anchor`` (None: ``anchor``) is the count in evaluation renders.
 
     Evaluation renders (gradients off) use ``eval_n_coarse`` / ``eval_n_fine`` (None: the training
     counts): more samples where no gradient is paid for.
@@ -58,13 +58,19 @@ class SDFCacheProposal(Estimator):
     def __init__(self, scene_box: Box, n_coarse: int = 128, n_fine: int = 16, resolution: int = 64,
                  every: int = 32, padding: float = 1e-3, skip_opacity: float = 1e-4, max_segment: float = 4.0,
                  eval_n_coarse: Optional[int] = None, eval_n_fine: Optional[int] = None, anchor: int = 0,
-                 anchor_window: Sequence[float] = (-4.0, 3.0), refine_evals: int = 8):
+                 anchor_window: Sequence[float] = (-4.0, 3.0), refine_evals: int = 8,
+                 eval_anchor: Optional[int] = None):
         super().__init__(scene_box)
         lo, hi = (float(v) for v in anchor_window)
-        if not 0 <= int(anchor) < int(n_fine) or not lo < hi or int(refine_evals) < 2:
-            raise ValueError(f"anchor must lie in [0, n_fine), anchor_window be [low, high] with low < high and "
-                             f"refine_evals >= 2, got {anchor}, {list(anchor_window)}, {refine_evals}")
+        eval_anchor = anchor if eval_anchor is None else eval_anchor
+        if not 0 <= int(anchor) < int(n_fine) or not 0 <= int(eval_anchor) < int(eval_n_fine if eval_n_fine is not None
+                                                                                    else n_fine) \
+                or not lo < hi or int(refine_evals) < 2:
+            raise ValueError(f"anchor (eval_anchor) must lie in [0, n_fine) ([0, eval_n_fine)), anchor_window be "
+                             f"[low, high] with low < high and refine_evals >= 2, got {anchor} ({eval_anchor}), "
+                             f"{list(anchor_window)}, {refine_evals}")
         self.anchor, self.anchor_window, self.refine_evals = int(anchor), (lo, hi), int(refine_evals)
+        self.eval_anchor = int(eval_anchor)
         eval_n_coarse = n_coarse if eval_n_coarse is None else eval_n_coarse
         eval_n_fine = n_fine if eval_n_fine is None else eval_n_fine
         if min(int(n_coarse), int(n_fine), int(eval_n_coarse), int(eval_n_fine)) < 2:
@@ -84,6 +90,7 @@ class SDFCacheProposal(Estimator):
         self.cache = SDFGridCache(scene_box, int(resolution)) if int(resolution) > 1 else None
         self._fresh = False
         self._hit_fraction = 1.0
+        self._refined_fraction = 0.0     # rays whose anchored samples were refined by the field (last batch)
 
     def _update(self, step: int, field, generator, force: bool) -> None:
         if self.cache is not None and (force or not self._fresh or step % self.every == 0):
@@ -96,7 +103,7 @@ class SDFCacheProposal(Estimator):
             raise ValueError("the sdf_cache estimator needs density= (and field= without a cache)")
         evaluating = not torch.is_grad_enabled()     # read before the no_grad block below
         n_coarse, n_fine = (self.eval_n_coarse, self.eval_n_fine) if evaluating else (self.n_coarse, self.n_fine)
-        self._counts = (n_coarse, n_fine)
+        self._counts, self._refined_fraction = (n_coarse, n_fine), 0.0
         near, far, hit = self.bounds(origins, dirs)
         t_c = stratified_samples(near, far, n_coarse, perturb=perturb, generator=generator)
         with torch.no_grad():
@@ -106,12 +113,12 @@ class SDFCacheProposal(Estimator):
             w_c = _coarse_weights(density, f_c, t_c, far, 0.5 * spacing) * hit[:, None]
             edges = torch.cat([t_c, far[:, None]], dim=-1)   # each coarse sample owns [t_i, t_{i+1}]
             edges = torch.maximum(edges, torch.cat([edges[:, :1], edges[:, :-1]], dim=-1))
-            n_anchor = min(self.anchor, n_fine - 1)
+            n_anchor = min(self.eval_anchor if evaluating else self.anchor, n_fine - 1)
             t = sample_pdf(edges, w_c, n_fine - n_anchor, perturb=perturb, generator=generator, padding=self.padding)
             if n_anchor > 0:     # step 5 above
                 spare = sample_pdf(edges, w_c, n_anchor, perturb=perturb, generator=generator, padding=self.padding)
-                t_anchor, found = self._anchored(origins, dirs, t_c, f_c, spacing[:, 0], field, density, n_anchor,
-                                                 perturb, generator)
+                t_anchor, found = self._anchored(origins, dirs, t_c, f_c, spacing[:, 0], hit, field, density,
+                                                 n_anchor, perturb, generator)
                 t_anchor = torch.minimum(torch.maximum(t_anchor, near[:, None]), far[:, None])
                 t = torch.sort(torch.cat([t, torch.where(found[:, None], t_anchor, spare)], dim=-1), dim=-1).values
             keep = torch.ones_like(t, dtype=torch.bool)
@@ -122,13 +129,17 @@ class SDFCacheProposal(Estimator):
         ends = torch.minimum(segment_ends(t, far), t + self.max_segment * spacing)   # step 4 above
         return pack_samples(t, ends, keep)
 
-    def _anchored(self, origins, dirs, t_c, f_c, spacing, field, density, n: int, perturb: bool, generator):
-        """(R, n) samples around the field's first zero crossing and (R,) whether the cache saw one."""
+    def _anchored(self, origins, dirs, t_c, f_c, spacing, hit, field, density, n: int, perturb: bool, generator):
+        """(R, n) samples around the field's first zero crossing and (R,) whether the cache saw one
+        (on a ray inside the box, ``hit``)."""
         if field is None:
             raise ValueError("sdf_cache with anchor > 0 needs field= (its own SDF refines the crossing)")
-        t_hat, found = first_crossing(f_c, t_c)
+        t_star, found = first_crossing(f_c, t_c)
+        found = found & hit
         half = self.cache.cell_size if self.cache is not None else float(spacing.max())
-        t_star, _ = refine_crossing(field.sdf, origins, dirs, t_hat, half, self.refine_evals)
+        rays = found.nonzero()[:, 0]          # only rays the cache sees cross pay for the field's evaluations
+        t_star[rays] = refine_crossing(field.sdf, origins[rays], dirs[rays], t_star[rays], half, self.refine_evals)[0]
+        self._refined_fraction = float(found.float().mean())
         width = float(density.beta) if hasattr(density, "beta") else 1.0 / float(density.s)
         lo, hi = self.anchor_window
         k = torch.arange(n, dtype=t_c.dtype, device=t_c.device).expand(t_c.shape[0], n)
@@ -139,9 +150,9 @@ class SDFCacheProposal(Estimator):
         """Evaluations per ray of the last batch, averaged over all rays: coarse (cache look-ups
         or SDF calls) + fine, and fine alone, counting rays inside the box (and, in evaluation
         renders, only those that kept their fine samples), with ``anchor`` the field's refining
-        evaluations on every ray inside the box."""
+        evaluations on the rays whose coarse pass found a crossing."""
         n_coarse, n_fine = self._counts
-        refine = self._hit_fraction * self.refine_evals if self.anchor > 0 else 0.0
+        refine = self._refined_fraction * self.refine_evals
         return {"samples_per_ray": self._hit_fraction * n_coarse + self._fine_fraction * n_fine + refine,
                 "fine_samples_per_ray": self._fine_fraction * n_fine}
 
