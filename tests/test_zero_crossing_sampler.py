@@ -63,8 +63,9 @@ def test_anchored_samples_sit_in_a_transition_the_cache_cannot_resolve():
     dens = LaplaceDensity(beta, None, learnable=False, beta_min=0.0)
     colour = lambda p, v: (sphere.sdf(p), torch.ones(p.shape[0], 3, dtype=D))  # noqa: E731
 
-    def render(anchor, eval_anchor=None, grad=False):
-        est = SDFCacheProposal(BOX, n_coarse=64, n_fine=16, resolution=16, anchor=anchor, eval_anchor=eval_anchor)
+    def render(anchor, eval_anchor=None, grad=False, when="always"):
+        est = SDFCacheProposal(BOX, n_coarse=64, n_fine=16, resolution=16, anchor=anchor, eval_anchor=eval_anchor,
+                               anchor_when=when)
         est.update(0, sphere)
         with torch.set_grad_enabled(grad):
             out = render_sdf_rays(colour, o, d, est, dens, field=sphere, perturb=True,
@@ -83,11 +84,20 @@ def test_anchored_samples_sit_in_a_transition_the_cache_cannot_resolve():
     assert torch.equal(inside_eval, inside) and torch.equal(err_eval, err)
     inside_train, _, out_train = render(0, eval_anchor=8, grad=True)
     assert torch.equal(inside_train, inside0) and float(out_train["samples_per_ray"]) == pytest.approx(64 + 16)
+    # anchor_when=narrow: the window (7 beta = 0.007) is narrower than a 16^3 cell (2 / 15): anchored as always;
+    # at beta 0.05 (window 0.35) the cache resolves the transition and no field evaluation is spent
+    inside_narrow, _, _ = render(8, when="narrow")
+    assert torch.equal(inside_narrow, inside)
+    dens.set_beta(0.05)
+    _, _, wide = render(8, when="narrow")
+    assert float(wide["samples_per_ray"]) == pytest.approx(64 + 16)
+    _, _, wide_always = render(8, when="always")
+    assert float(wide_always["samples_per_ray"]) == pytest.approx(64 + 16 + 8)
 
 
 @pytest.mark.parametrize("kw", [dict(anchor=16), dict(anchor=-1), dict(anchor=4, anchor_window=(1.0, 1.0)),
                                 dict(anchor=4, refine_evals=1), dict(eval_anchor=16),
-                                dict(eval_n_fine=8, eval_anchor=8)])
+                                dict(eval_n_fine=8, eval_anchor=8), dict(anchor=4, anchor_when="sometimes")])
 def test_bad_anchor_settings_are_refused(kw):
     with pytest.raises(ValueError, match="anchor"):
         SDFCacheProposal(BOX, n_fine=16, **kw)

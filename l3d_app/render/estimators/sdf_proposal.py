@@ -42,7 +42,9 @@ class SDFCacheProposal(Estimator):
        spacing without a cache), then ``anchor`` stratified samples over ``anchor_window`` (in units
        of the density's transition width: ``beta``, or ``1/s`` for NeuS) around it. A transition
        narrower than the cache's error still gets its samples. Rays with no crossing draw them from
-       the weights like the rest. ``eval_anchor`` (None: ``anchor``) is the count in evaluation renders.
+       the weights like the rest. ``eval_anchor`` (None: ``anchor``) is the count in evaluation renders;
+       ``anchor_when`` ``narrow`` uses them only while their window is narrower than a cache cell (wider
+       transitions the cache resolves itself), ``always`` at every width.
 
     Evaluation renders (gradients off) use ``eval_n_coarse`` / ``eval_n_fine`` (None: the training
     counts): more samples where no gradient is paid for.
@@ -59,8 +61,11 @@ class SDFCacheProposal(Estimator):
                  every: int = 32, padding: float = 1e-3, skip_opacity: float = 1e-4, max_segment: float = 4.0,
                  eval_n_coarse: Optional[int] = None, eval_n_fine: Optional[int] = None, anchor: int = 0,
                  anchor_window: Sequence[float] = (-4.0, 3.0), refine_evals: int = 8,
-                 eval_anchor: Optional[int] = None):
+                 eval_anchor: Optional[int] = None, anchor_when: str = "always"):
         super().__init__(scene_box)
+        if anchor_when not in ("always", "narrow"):
+            raise ValueError(f"anchor_when must be always or narrow, got {anchor_when!r}")
+        self.anchor_when = anchor_when
         lo, hi = (float(v) for v in anchor_window)
         eval_anchor = anchor if eval_anchor is None else eval_anchor
         if not 0 <= int(anchor) < int(n_fine) or not 0 <= int(eval_anchor) < int(eval_n_fine if eval_n_fine is not None
@@ -114,6 +119,8 @@ class SDFCacheProposal(Estimator):
             edges = torch.cat([t_c, far[:, None]], dim=-1)   # each coarse sample owns [t_i, t_{i+1}]
             edges = torch.maximum(edges, torch.cat([edges[:, :1], edges[:, :-1]], dim=-1))
             n_anchor = min(self.eval_anchor if evaluating else self.anchor, n_fine - 1)
+            if n_anchor > 0 and self.anchor_when == "narrow" and not self._window(density) < self._resolved(spacing):
+                n_anchor = 0     # the cache (or the coarse pass) resolves the transition itself
             t = sample_pdf(edges, w_c, n_fine - n_anchor, perturb=perturb, generator=generator, padding=self.padding)
             if n_anchor > 0:     # step 5 above
                 spare = sample_pdf(edges, w_c, n_anchor, perturb=perturb, generator=generator, padding=self.padding)
@@ -136,15 +143,23 @@ class SDFCacheProposal(Estimator):
             raise ValueError("sdf_cache with anchor > 0 needs field= (its own SDF refines the crossing)")
         t_star, found = first_crossing(f_c, t_c)
         found = found & hit
-        half = self.cache.cell_size if self.cache is not None else float(spacing.max())
+        half = self._resolved(spacing)
         rays = found.nonzero()[:, 0]          # only rays the cache sees cross pay for the field's evaluations
         t_star[rays] = refine_crossing(field.sdf, origins[rays], dirs[rays], t_star[rays], half, self.refine_evals)[0]
         self._refined_fraction = float(found.float().mean())
-        width = float(density.beta) if hasattr(density, "beta") else 1.0 / float(density.s)
+        width = _transition_width(density)
         lo, hi = self.anchor_window
         k = torch.arange(n, dtype=t_c.dtype, device=t_c.device).expand(t_c.shape[0], n)
         u = (k + (rand(k.shape, generator, t_c.device, t_c.dtype) if perturb else 0.5)) / n
         return t_star[:, None] + width * (lo + (hi - lo) * u), found
+
+    def _resolved(self, spacing: torch.Tensor) -> float:
+        """The finest detail the coarse pass resolves (world units): a cache cell, or the widest coarse spacing."""
+        return self.cache.cell_size if self.cache is not None else float(spacing.max())
+
+    def _window(self, density) -> float:
+        """Width of the anchored samples' window (world units)."""
+        return (self.anchor_window[1] - self.anchor_window[0]) * _transition_width(density)
 
     def stats(self) -> dict:
         """Evaluations per ray of the last batch, averaged over all rays: coarse (cache look-ups
@@ -155,6 +170,11 @@ class SDFCacheProposal(Estimator):
         refine = self._refined_fraction * self.refine_evals
         return {"samples_per_ray": self._hit_fraction * n_coarse + self._fine_fraction * n_fine + refine,
                 "fine_samples_per_ray": self._fine_fraction * n_fine}
+
+
+def _transition_width(density) -> float:
+    """The density's transition width (world units): VolSDF's ``beta``, NeuS's ``1 / s``."""
+    return float(density.beta) if hasattr(density, "beta") else 1.0 / float(density.s)
 
 
 def _coarse_weights(density, sdf: torch.Tensor, t: torch.Tensor, far: torch.Tensor, widen: torch.Tensor
