@@ -26,7 +26,9 @@
   of the SDF (``cache_resolution``^3, refreshed every ``cache_every`` steps, no grad) gives
   ``n_coarse`` look-ups per ray whose VolSDF weights place ``n_fine`` field samples at the
   zero level set (:func:`~l3d_app.render.sdf_volume.render_sdf_rays`); metrics report both
-  counts (``samples_per_ray``, ``fine_samples_per_ray``).
+  counts (``samples_per_ray``, ``fine_samples_per_ray``). Evaluation renders put 8 of them at the
+  field's own first zero crossing once ``beta`` is below what the cache resolves
+  (``sampler.eval_anchor``, ``sampler.anchor_when=narrow``).
 * loss: colour MSE + ``w_eikonal`` x eikonal loss at the fine samples and at
   ``eikonal_points`` random box points (+ ``w_free`` x an occupied-volume prior at the same box points, default off:
   :func:`~l3d_app.losses.free_space.occupied_volume`, or with ``free_softness`` > 0

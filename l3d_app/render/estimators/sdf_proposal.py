@@ -63,21 +63,10 @@ class SDFCacheProposal(Estimator):
                  anchor_window: Sequence[float] = (-4.0, 3.0), refine_evals: int = 8,
                  eval_anchor: Optional[int] = None, anchor_when: str = "always"):
         super().__init__(scene_box)
-        if anchor_when not in ("always", "narrow"):
-            raise ValueError(f"anchor_when must be always or narrow, got {anchor_when!r}")
-        self.anchor_when = anchor_when
-        lo, hi = (float(v) for v in anchor_window)
-        eval_anchor = anchor if eval_anchor is None else eval_anchor
-        if not 0 <= int(anchor) < int(n_fine) or not 0 <= int(eval_anchor) < int(eval_n_fine if eval_n_fine is not None
-                                                                                    else n_fine) \
-                or not lo < hi or int(refine_evals) < 2:
-            raise ValueError(f"anchor (eval_anchor) must lie in [0, n_fine) ([0, eval_n_fine)), anchor_window be "
-                             f"[low, high] with low < high and refine_evals >= 2, got {anchor} ({eval_anchor}), "
-                             f"{list(anchor_window)}, {refine_evals}")
-        self.anchor, self.anchor_window, self.refine_evals = int(anchor), (lo, hi), int(refine_evals)
-        self.eval_anchor = int(eval_anchor)
         eval_n_coarse = n_coarse if eval_n_coarse is None else eval_n_coarse
         eval_n_fine = n_fine if eval_n_fine is None else eval_n_fine
+        self._check_anchor(anchor, anchor if eval_anchor is None else eval_anchor, anchor_window, refine_evals,
+                           anchor_when, n_fine, eval_n_fine)
         if min(int(n_coarse), int(n_fine), int(eval_n_coarse), int(eval_n_fine)) < 2:
             raise ValueError(f"n_coarse, n_fine, eval_n_coarse and eval_n_fine must be >= 2, got {n_coarse}, "
                              f"{n_fine}, {eval_n_coarse}, {eval_n_fine}")
@@ -96,6 +85,17 @@ class SDFCacheProposal(Estimator):
         self._fresh = False
         self._hit_fraction = 1.0
         self._refined_fraction = 0.0     # rays whose anchored samples were refined by the field (last batch)
+
+    def _check_anchor(self, anchor, eval_anchor, window, refine_evals, when, n_fine, eval_n_fine) -> None:
+        """Validate and keep the anchored samples' settings (step 5 of the class docstring)."""
+        lo, hi = (float(v) for v in window)
+        if not (0 <= int(anchor) < int(n_fine) and 0 <= int(eval_anchor) < int(eval_n_fine) and lo < hi
+                and int(refine_evals) >= 2 and when in ("always", "narrow")):
+            raise ValueError(f"anchor (eval_anchor) must lie in [0, n_fine) ([0, eval_n_fine)), anchor_window be "
+                             f"[low, high] with low < high, refine_evals >= 2 and anchor_when always or narrow, got "
+                             f"{anchor} ({eval_anchor}), {list(window)}, {refine_evals}, {when!r}")
+        self.anchor, self.eval_anchor, self.anchor_window = int(anchor), int(eval_anchor), (lo, hi)
+        self.refine_evals, self.anchor_when = int(refine_evals), str(when)
 
     def _update(self, step: int, field, generator, force: bool) -> None:
         if self.cache is not None and (force or not self._fresh or step % self.every == 0):
@@ -145,7 +145,9 @@ class SDFCacheProposal(Estimator):
         found = found & hit
         half = self._resolved(spacing)
         rays = found.nonzero()[:, 0]          # only rays the cache sees cross pay for the field's evaluations
-        t_star[rays] = refine_crossing(field.sdf, origins[rays], dirs[rays], t_star[rays], half, self.refine_evals)[0]
+        if rays.numel():
+            t_star[rays] = refine_crossing(field.sdf, origins[rays], dirs[rays], t_star[rays], half,
+                                           self.refine_evals)[0]
         self._refined_fraction = float(found.float().mean())
         width = _transition_width(density)
         lo, hi = self.anchor_window
