@@ -101,3 +101,10 @@ def test_anchored_samples_sit_in_a_transition_the_cache_cannot_resolve():
 def test_bad_anchor_settings_are_refused(kw):
     with pytest.raises(ValueError, match="anchor"):
         SDFCacheProposal(BOX, n_fine=16, **kw)
+
+
+def test_the_anchor_window_is_in_each_density_s_own_width():
+    from l3d_app.render.densities import transition_width
+    from l3d_app.render.neus import NeuSDensity
+    assert transition_width(LaplaceDensity(0.01, None, learnable=False, beta_min=0.0)) == pytest.approx(0.01)
+    assert transition_width(NeuSDensity(50.0)) == pytest.approx(0.02)

@@ -91,6 +91,11 @@ def distance_along_ray(sdf: torch.Tensor, grad: torch.Tensor, dirs: torch.Tensor
     return sdf / c
 
 
+def transition_width(density) -> float:
+    """How wide a ``DENSITIES`` module's surface transition is (world units): VolSDF's ``beta``, NeuS's ``1 / s``."""
+    return float(density.beta) if hasattr(density, "beta") else 1.0 / float(density.s)
+
+
 def volsdf_density(sdf: torch.Tensor, alpha: Scalar, beta: Scalar) -> torch.Tensor:
     """VolSDF density ``alpha * Psi_beta(-sdf)`` (same shape as ``sdf``).
 

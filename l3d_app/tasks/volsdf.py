@@ -91,6 +91,7 @@ from l3d_app.models.sdf_grid import pretrain_field
 from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
 from l3d_app.render.evaluation import render_views
 from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
+from l3d_app.render.densities import transition_width
 from l3d_app.render.free_space import near_surface_weight
 from l3d_app.render.rgbd import true_depth_maps
 from l3d_app.render.sdf_volume import render_sdf_rays
@@ -204,8 +205,8 @@ def volsdf(cfg, ctx) -> dict:
     half_cell = 0.5 * cache.cell_size if cache is not None else 0.0
 
     def proposal(points: torch.Tensor) -> torch.Tensor:     # free_space.proposal=surface: where the loss has a gradient
-        width = float(dens.beta) if hasattr(dens, "beta") else 1.0 / float(dens.s)
-        return near_surface_weight((cache if cache is not None else model.sdf)(points), max(width, half_cell))
+        return near_surface_weight((cache if cache is not None else model.sdf)(points),
+                                   max(transition_width(dens), half_cell))
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
         stats["_t0"], stats["_c0"] = time.perf_counter(), time.process_time()

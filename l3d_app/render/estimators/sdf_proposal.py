@@ -7,6 +7,7 @@ from typing import Optional, Sequence
 import torch
 
 from l3d_app.registry import SAMPLERS
+from l3d_app.render.densities import transition_width
 from l3d_app.render.estimators.base import Box, Estimator, Samples, segment_ends
 from l3d_app.render.estimators.zero_crossing import first_crossing, refine_crossing
 from l3d_app.render.rendering import pack_samples
@@ -149,7 +150,7 @@ class SDFCacheProposal(Estimator):
             t_star[rays] = refine_crossing(field.sdf, origins[rays], dirs[rays], t_star[rays], half,
                                            self.refine_evals)[0]
         self._refined_fraction = float(found.float().mean())
-        width = _transition_width(density)
+        width = transition_width(density)
         lo, hi = self.anchor_window
         k = torch.arange(n, dtype=t_c.dtype, device=t_c.device).expand(t_c.shape[0], n)
         u = (k + (rand(k.shape, generator, t_c.device, t_c.dtype) if perturb else 0.5)) / n
@@ -161,7 +162,7 @@ class SDFCacheProposal(Estimator):
 
     def _window(self, density) -> float:
         """Width of the anchored samples' window (world units)."""
-        return (self.anchor_window[1] - self.anchor_window[0]) * _transition_width(density)
+        return (self.anchor_window[1] - self.anchor_window[0]) * transition_width(density)
 
     def stats(self) -> dict:
         """Evaluations per ray of the last batch, averaged over all rays: coarse (cache look-ups
@@ -172,11 +173,6 @@ class SDFCacheProposal(Estimator):
         refine = self._refined_fraction * self.refine_evals
         return {"samples_per_ray": self._hit_fraction * n_coarse + self._fine_fraction * n_fine + refine,
                 "fine_samples_per_ray": self._fine_fraction * n_fine}
-
-
-def _transition_width(density) -> float:
-    """The density's transition width (world units): VolSDF's ``beta``, NeuS's ``1 / s``."""
-    return float(density.beta) if hasattr(density, "beta") else 1.0 / float(density.s)
 
 
 def _coarse_weights(density, sdf: torch.Tensor, t: torch.Tensor, far: torch.Tensor, widen: torch.Tensor
