@@ -89,9 +89,9 @@ from l3d_app.models.level_schedule import LevelSchedule
 from l3d_app.models.sdf_gradients import field_with_gradient
 from l3d_app.models.sdf_grid import pretrain_field
 from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
+from l3d_app.render.densities import transition_width
 from l3d_app.render.evaluation import render_views
 from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
-from l3d_app.render.densities import transition_width
 from l3d_app.render.free_space import near_surface_weight
 from l3d_app.render.rgbd import true_depth_maps
 from l3d_app.render.sdf_volume import render_sdf_rays
