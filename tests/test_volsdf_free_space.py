@@ -67,17 +67,41 @@ def test_resume_reads_the_saved_stretches_instead_of_fitting_again(tmp_path):
 
 def test_density_loss_needs_the_volsdf_density(compose):
     import l3d_app.tasks  # noqa: F401
-    cfg = compose("task=volsdf", "density=neus", "free_space.steps=10", "data=blender", "data.root=/no/such/folder")
-    with pytest.raises(UserError, match="free_space.loss=occupancy needs density=volsdf"):
+    cfg = compose("task=volsdf", "density=neus", "free_space.steps=10", "free_space.loss=density",
+                  "data=blender", "data.root=/no/such/folder")
+    with pytest.raises(UserError, match="free_space.loss=density needs density=volsdf"):
         TASKS.get("volsdf")(cfg, None)
 
 
-def test_margin_beta_needs_the_volsdf_density(compose):
+@pytest.mark.parametrize("loss", ["occupancy", "outside"])
+def test_neus_with_the_stage_and_its_margin_reaches_the_data(compose, loss):
+    """NeuS has an occupancy (sigmoid(-s f)) and a transition width (1 / s): the stage's occupancy loss and
+    margin_beta pass the checks with it; the run stops at the missing data."""
     import l3d_app.tasks  # noqa: F401
-    cfg = compose("task=volsdf", "density=neus", "free_space.steps=10", "free_space.loss=outside",
+    cfg = compose("task=volsdf", "density=neus", "free_space.steps=10", f"free_space.loss={loss}",
                   "free_space.margin_beta=2", "data=blender", "data.root=/no/such/folder")
-    with pytest.raises(UserError, match="free_space.margin_beta needs density=volsdf"):
+    with pytest.raises(UserError) as err:
         TASKS.get("volsdf")(cfg, None)
+    assert "free_space" not in str(err.value) and "/no/such/folder" in str(err.value)
+
+
+def test_neus_occupancy_loss_against_the_logistic_cdf_by_hand():
+    """NeuS: occupancy = mean(sigmoid(-s f) x length), 1 / (1 + exp(s f)) written out here."""
+    import math
+
+    from l3d_app.losses.free_space import free_stretch_loss
+    from l3d_app.render.neus import NeuSDensity
+
+    dens = NeuSDensity(20.0)
+    f = torch.tensor([0.1, -0.05, 0.0, 3.0], dtype=torch.float64)
+    length = torch.tensor([1.0, 2.0, 0.5, 1.0], dtype=torch.float64)
+    phi = [1 / (1 + math.exp(20 * v)) for v in (0.1, -0.05, 0.0, 3.0)]
+    expected = (phi[0] * 1 + phi[1] * 2 + phi[2] * 0.5 + phi[3] * 1) / 4
+    assert float(free_stretch_loss("occupancy", f, length, dens)) == pytest.approx(expected, rel=1e-12)
+    f.requires_grad_(True)      # d/df sigmoid(-s f) = -s phi (1 - phi): pushes f up inside the stretch
+    free_stretch_loss("occupancy", f, length, dens).backward()
+    grad = [-20 * p * (1 - p) * ln / 4 for p, ln in zip(phi, (1.0, 2.0, 0.5, 1.0))]
+    torch.testing.assert_close(f.grad, torch.tensor(grad, dtype=torch.float64), rtol=1e-10, atol=1e-30)
 
 
 def test_free_space_losses_against_the_laplace_cdf_by_hand():

@@ -13,8 +13,8 @@ PSNR and surface roughness, and larger weights were worse; volsdf keeps them off
 
 ``free_stretch_loss(kind, f, length, density)``: the same idea where the images SAY a point is
 empty (a point on a training ray before any surface, ``render/free_space.py``): ``outside``
-``mean(relu(-f))``, ``density`` the stretch's optical depth (1-point estimate), ``occupancy`` that
-over alpha (VolSDF's Psi_beta(-f) x length).
+``mean(relu(-f))``, ``density`` the stretch's optical depth (1-point estimate, VolSDF only),
+``occupancy`` the density module's occupancy x length (VolSDF's ``Psi_beta(-f)``, NeuS's ``Phi_s(-f)``).
 
 ``occupied_fraction(f, softness) = mean(sigmoid(-f / softness))``: the share of the box inside
 the solid, smoothed over ``softness`` world units; its gradient sits at the boundary
@@ -53,13 +53,15 @@ def free_stretch_loss(kind: str, f: torch.Tensor, length: torch.Tensor, density,
                       weights: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The loss at (N,) SDF values ``f`` of points on known-free stretches of (N,) ``length``
     (world units): ``outside`` mean(relu(-f)); ``density`` the mean optical depth of a stretch
-    (density(f) x length, 1-point estimate); ``occupancy`` the same over alpha (Psi_beta(-f) x length:
-    as strong as ``density`` early, weaker as beta anneals). ``weights`` (N,): importance weights
+    (density(f) x length, 1-point estimate; a density per point: VolSDF); ``occupancy``
+    ``density.occupancy(f) x length`` (VolSDF: the same over alpha, Psi_beta(-f) x length, as strong as
+    ``density`` early, weaker as beta anneals; NeuS: sigmoid(-s f) x length). ``weights`` (N,): importance weights
     of resampled points (:meth:`~l3d_app.render.free_space.FreeRays.sample_resampled`), each
     point's term multiplied by its weight (None: 1)."""
     if kind == "outside":
         term = torch.relu(-f)
+    elif kind == "density":
+        term = density(f) * length
     else:
-        tau = density(f) * length
-        term = tau if kind == "density" else tau / density.alpha
+        term = density.occupancy(f) * length
     return (term if weights is None else term * weights).mean()

@@ -202,6 +202,11 @@ class LaplaceDensity(torch.nn.Module):
         beta = widen.clamp_min(float(self.beta))
         return volsdf_density(sdf, float(self.alpha), beta) * (t_ends - t_starts)
 
+    def occupancy(self, sdf: torch.Tensor) -> torch.Tensor:
+        """How much a point counts as inside, in [0, 1] (same shape): ``Psi_beta(-f)``, the density
+        over ``alpha`` (the free-space loss's ``occupancy``)."""
+        return self(sdf) / self.alpha
+
     def rgb_key(self) -> str:
         """What the density gives the renderer per sample: ``sigma`` (times the segment length)."""
         return "sigma"

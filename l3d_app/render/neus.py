@@ -70,24 +70,43 @@ class NeuSDensity(torch.nn.Module):
 
     Segment ``i`` of a ray has optical depth ``max(log Phi_s(f_i) - log Phi_s(f_{i+1}), 0)``
     (:func:`neus_optical_depth`; ``f_{i+1}`` the SDF at the ray's next sample); the last
-    segment of each ray gets 0. ``s`` (1 / world units) is fixed, or trained when
-    ``learnable`` (as ``log s``).
+    segment of each ray gets 0. A ray that passes a surface at height ``h`` without entering it
+    collects ``log Phi_s(f_start) - log Phi_s(h)``: under half the opacity for any ``h > 0``, so a
+    silhouette lies ON the zero level set (VolSDF's lies outside it, see ``tasks/volsdf.py``).
+
+    Args:
+        s: the inverse scale (1 / world units, > 0): fixed (``mode=fixed``), the initial value
+            (``learnable``, trained as ``log s``; ``anneal``).
+        mode: ``fixed`` | ``learnable`` | ``anneal``: geometric from ``s`` to ``s_end`` over
+            ``anneal_fraction`` of the steps, then held (:meth:`schedule`).
+        learnable: the older spelling of ``mode=learnable`` (kept for configs that set it).
     """
 
-    def __init__(self, s: float = 64.0, learnable: bool = False):
+    def __init__(self, s: float = 64.0, learnable: bool = False, mode: Optional[str] = None,
+                 s_end: Optional[float] = None, anneal_fraction: float = 0.8):
         super().__init__()
+        mode = ("learnable" if learnable else "fixed") if mode is None else str(mode)
+        if mode not in ("fixed", "learnable", "anneal"):
+            raise ValueError(f"NeuS s mode must be fixed, learnable or anneal, got {mode!r}")
         if not float(s) > 0:
             raise ValueError(f"s must be > 0, got {s}")
+        if mode == "anneal" and not (s_end is not None and float(s_end) > 0):
+            raise ValueError(f"s mode anneal needs s_end > 0, got {s_end}")
+        if not 0.0 <= float(anneal_fraction) <= 1.0:
+            raise ValueError(f"anneal_fraction must be in [0, 1], got {anneal_fraction}")
         log_s = torch.tensor(math.log(float(s)))
-        if learnable:
+        if mode == "learnable":
             self.log_s = torch.nn.Parameter(log_s)
         else:
             self.register_buffer("log_s", log_s)
-        self.fixed_s = None if learnable else float(s)
+        self.mode, self.s_start = mode, float(s)
+        self.s_end = float(s_end) if s_end is not None else float(s)
+        self.anneal_fraction = float(anneal_fraction)
+        self.fixed_s = None if mode == "learnable" else float(s)
 
     @property
     def s(self):
-        """Inverse scale (a float when fixed, a scalar tensor when learnable)."""
+        """Inverse scale (a float when fixed or annealed, a scalar tensor when learnable)."""
         return self.fixed_s if self.fixed_s is not None else torch.exp(self.log_s)
 
     def optical_depth(self, sdf: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
@@ -99,11 +118,22 @@ class NeuSDensity(torch.nn.Module):
         tau = torch.where(same_ray, tau, torch.zeros_like(tau))
         return torch.cat([tau, tau.new_zeros(1)]) if sdf.numel() else sdf.new_zeros(0)
 
+    def occupancy(self, sdf: torch.Tensor) -> torch.Tensor:
+        """How much a point counts as inside, in [0, 1] (same shape): ``Phi_s(-f) = sigmoid(-s f)``
+        (the free-space loss's ``occupancy``)."""
+        return logistic_cdf(-sdf, self.s)
+
     def rgb_key(self) -> str:
         return "tau"
 
-    def schedule(self, step: int, iters: int) -> None:
-        return None
+    def schedule(self, step: float, iters: int) -> None:
+        """``anneal``: ``s = s_start (s_end / s_start)^p``, ``p = min(1, step / (fraction iters))``
+        (``step`` may be fractional: a time-budgeted run's nominal step); otherwise nothing."""
+        if self.mode != "anneal":
+            return
+        p = min(1.0, step / max(1.0, self.anneal_fraction * int(iters)))
+        self.fixed_s = self.s_start * (self.s_end / self.s_start) ** p
+        self.log_s.fill_(math.log(self.fixed_s))
 
     def stats(self) -> dict:
         return {"s": float(self.s)}

@@ -121,12 +121,9 @@ def volsdf(cfg, ctx) -> dict:
     require_mesh_resolution(cfg)
     check_free_space_config(cfg.free_space)
     fs = resolve_free_space(cfg.free_space, cfg.density.name)     # steps=auto: on with density=volsdf only
-    if int(fs.steps) > 0 and str(fs.loss) != "outside" and str(cfg.density.name) != "volsdf":
-        raise UserError(f"free_space.loss={fs.loss} needs density=volsdf (a density per point), got density="
-                        f"{cfg.density.name}: use free_space.loss=outside")
-    if int(fs.steps) > 0 and float(fs.margin_beta) > 0 and str(cfg.density.name) != "volsdf":
-        raise UserError(f"free_space.margin_beta needs density=volsdf (a Laplace scale beta), got density="
-                        f"{cfg.density.name}: use free_space.margin_beta=0")
+    if int(fs.steps) > 0 and str(fs.loss) == "density" and str(cfg.density.name) != "volsdf":
+        raise UserError(f"free_space.loss=density needs density=volsdf (a density per point), got density="
+                        f"{cfg.density.name}: use free_space.loss=occupancy or outside")
     if bool(cfg.density.get("along_ray", False)) and not hasattr(MODELS.get(str(cfg.model.name)), "sdf_rgb_grad"):
         raise UserError(f"density_along_ray needs a field with an exact gradient at evaluation (model=sdf_grid_field), "
                         f"got model={cfg.model.name}")
@@ -241,7 +238,7 @@ def volsdf(cfg, ctx) -> dict:
                 loss, logs["free_prior"] = loss + float(cfg.w_free) * occ, occ.detach()
         w_now = w_carve * fade_to_zero(nominal / max(int(cfg.iters), 1), fs.get("until"))
         if free is not None and len(free) and w_now > 0:   # points some training ray passes before any surface
-            shorten = float(fs.margin_beta) * float(dens.beta) if float(fs.margin_beta) > 0 else 0.0
+            shorten = float(fs.margin_beta) * transition_width(dens) if float(fs.margin_beta) > 0 else 0.0
             if str(fs.proposal) == "surface":     # the same loss, its points drawn where it has a gradient
                 pts, length, iw = free.sample_resampled(int(fs.points), int(fs.candidates), proposal,
                                                         ctx.generator, shorten, float(fs.mix))
