@@ -70,6 +70,42 @@ def turntable_width(cfg, data_width: int) -> int:
     return min(int(data_width), cap) if cap > 0 else int(data_width)
 
 
+def turntable_frames_that_fit(frames: int, seconds_left: Optional[float], seconds_per_ray: float,
+                              frame_size: int, gifs: int = 1, least: int = 8) -> int:
+    """How many of ``frames`` turntable frames a run renders after its test views: all of them
+    without a time budget (``seconds_left`` None), else as many as fit ``seconds_left`` (the
+    budget less the elapsed wall time) when each of the ``gifs`` turntables costs ``frame_size``^2
+    rays per frame at ``seconds_per_ray`` (the test views' measured cost: conservative, a
+    turntable renders one ray per pixel and ``geometry.gif`` sphere-traces). 0 (no gif) when
+    fewer than ``least`` frames fit: a turntable is a preview no metric reads, so under a budget
+    the training steps come first and the gifs take what is left (``evals_after_training``
+    leaves them out of the loop's reserve)."""
+    frames = int(frames)
+    if seconds_left is None or frames <= 0:
+        return max(frames, 0)
+    per_frame = max(float(seconds_per_ray), 0.0) * int(frame_size) ** 2 * max(int(gifs), 1)
+    fit = frames if per_frame <= 0 else int(max(float(seconds_left), 0.0) // per_frame)
+    fit = min(frames, fit)
+    return fit if fit >= min(int(least), frames) else 0
+
+
+def gif_frames_in_budget(cfg, ctx, gifs: int, test_rays: int, frame_size: int) -> int:
+    """The turntable frames a field task writes after its test views (``stage("test")`` of
+    ``ctx.stopwatch``, ``test_rays`` rays): ``cfg.gif_frames``, or with ``cfg.time_budget`` > 0 what
+    :func:`turntable_frames_that_fit` leaves in the budget for ``gifs`` turntables of ``frame_size``
+    px (a TensorBoard note ``gifs`` says when fewer are written)."""
+    asked, budget = int(cfg.gif_frames), float(cfg.time_budget)
+    if asked <= 0 or budget <= 0:
+        return max(asked, 0)
+    per_ray = ctx.stopwatch.stages.get("test", 0.0) / max(int(test_rays), 1)
+    left = budget - ctx.stopwatch.elapsed
+    frames = turntable_frames_that_fit(asked, left, per_ray, frame_size, gifs)
+    if frames < asked:
+        ctx.logger.text("gifs", f"time budget {budget:g} s: {frames} of {asked} turntable frames fit the "
+                                f"{max(left, 0.0):.1f} s left ({'no gif' if frames == 0 else 'fewer frames'})")
+    return frames
+
+
 def evals_after_training(n_eval_views: int, n_test_views: int, frames: int = 0, frame_size: int = 0,
                          image_hw: Tuple[int, int] = (1, 1), supersample: int = 1,
                          val_supersample: Optional[int] = None) -> float:

@@ -35,7 +35,7 @@ from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import background_parameter, require_mesh_resolution, require_positive
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
-                                        turntable_width)
+                                        gif_frames_in_budget, turntable_width)
 
 
 @TASKS.register("train_nerf")
@@ -107,21 +107,16 @@ def train_nerf(cfg, ctx) -> dict:
                        eval_every=int(cfg.eval_every), checkpoint_every=int(cfg.checkpoint_every),
                        resume=bool(cfg.resume), desc="train_nerf", after_step=after_step,
                        time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
-                       reserve_evals=evals_after_training(
-                           len(val), len(data.test), int(cfg.gif_frames),
-                           turntable_width(cfg, data.cameras.width), data.image_size))
+                       reserve_evals=evals_after_training(     # the test views (the gif takes what is left)
+                           len(val), len(data.test), 0, 0, data.image_size))
     with torch.no_grad():
-        sampler.update(result.step, model, ctx.generator)
-        test, picture, _ = evaluate(data.test)                                  # the one test evaluation
+        with ctx.stopwatch.stage("test"):
+            sampler.update(result.step, model, ctx.generator)
+            test, picture, _ = evaluate(data.test)                              # the one test evaluation
         log_test(ctx, test, result.step, images={"views": picture})
         save_png(ctx.path("test_views.png"), picture)
         metrics = {k: round(v, 4) for k, v in test.items()}
         metrics.update(before_after.save(ctx))
-        if int(cfg.gif_frames) > 0:
-            cams = orbit_cameras(int(cfg.gif_frames), float(data.cameras.centers().norm(dim=-1).mean()),
-                                 float(cfg.gif_elevation), float(data.cameras.fov()[0]),
-                                 turntable_width(cfg, data.cameras.width), up=data_up(data), device=ctx.device)
-            write_turntable(ctx.path("turntable.gif"), color_depth_frames(render_fn, int(cfg.chunk)), cams, cfg.fps)
         if bool(cfg.extract_mesh):
             mesh = extract_mesh(lambda p: -model.density(p), box, int(cfg.mesh_resolution), -float(cfg.mesh_threshold),
                                 color_fn=lambda v, n: model(v, -n)[1], device=ctx.device)
@@ -134,6 +129,14 @@ def train_nerf(cfg, ctx) -> dict:
                                                                                int(cfg.mesh_resolution))
                 save_field_mesh(mesh, ctx.path("mesh"), list(cfg.mesh_formats))
             metrics["mesh_faces"] = 0 if mesh is None else int(mesh.num_faces)
+        width = turntable_width(cfg, data.cameras.width)
+        frames = gif_frames_in_budget(cfg, ctx, 1, len(data.test) * data.image_size[0] * data.image_size[1], width)
+        if frames > 0:
+            cams = orbit_cameras(frames, float(data.cameras.centers().norm(dim=-1).mean()),
+                                 float(cfg.gif_elevation), float(data.cameras.fov()[0]), width,
+                                 up=data_up(data), device=ctx.device)
+            write_turntable(ctx.path("turntable.gif"), color_depth_frames(render_fn, int(cfg.chunk)), cams, cfg.fps)
+        metrics["gif_frames"] = frames
     metrics.update({**{k: v for k, v in result.val_metrics().items() if k in ("val_psnr", "val_ssim")},
                     **result.timing(), "n_params": sum(p.numel() for p in model.parameters()),
                     **{k: round(float(v), 5) for k, v in figures().items()}, "history": result.history_rows()})

@@ -105,7 +105,7 @@ from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import (background_parameter, require_mesh_resolution, require_nonnegative,
                                  require_positive)
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
-                                        turntable_width)
+                                        gif_frames_in_budget, turntable_width)
 from l3d_app.tasks.free_space_common import FILE as FREE_SPACE_FILE
 from l3d_app.tasks.free_space_common import (MIN_STAGE_SECONDS, check_free_space_config, fit_free_rays,
                                                resolve_free_space, stage_deadline)
@@ -169,9 +169,8 @@ def volsdf(cfg, ctx) -> dict:
         return evaluate_views(render, data.cameras[views], data.images[views], int(cfg.chunk), supersample)
 
     val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val
-    evals_after = evals_after_training(   # test views, then render.gif + geometry.gif, in validations
-        len(val), len(data.test), 2 * int(cfg.gif_frames), turntable_width(cfg, data.cameras.width),
-        data.image_size, int(cfg.supersample), int(cfg.val_supersample))
+    evals_after = evals_after_training(   # the test views, in validations (the gifs take what is left at the end)
+        len(val), len(data.test), 0, 0, data.image_size, int(cfg.supersample), int(cfg.val_supersample))
     resuming = bool(cfg.resume) and ctx.path("checkpoint.pt").exists()
     before_after, before_seconds = BeforeAfter(), None
     if len(val) and bool(cfg.before_after) and not resuming:   # timed: the dearest validation (fuzzy start)
@@ -270,7 +269,7 @@ def volsdf(cfg, ctx) -> dict:
                        time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
                        reserve_evals=evals_after, horizon=horizon)
     model.eval()
-    with torch.no_grad():
+    with torch.no_grad(), ctx.stopwatch.stage("test"):
         sampler.update(result.step, model, ctx.generator, force=True)
         test, picture, _ = evaluate(data.test, int(cfg.supersample))             # the one test evaluation
         log_test(ctx, test, result.step, images={"views": picture})
@@ -279,16 +278,18 @@ def volsdf(cfg, ctx) -> dict:
     metrics.update(before_after.save(ctx))
     with ctx.stopwatch.stage("mesh"):
         metrics.update(_surface_metrics(cfg, ctx, model, field_fn, box, data))
-    if int(cfg.gif_frames) > 0:
+    frames = gif_frames_in_budget(cfg, ctx, 2, len(data.test) * data.image_size[0] * data.image_size[1]
+                                  * int(cfg.supersample) ** 2, turntable_width(cfg, data.cameras.width))
+    if frames > 0:
         with ctx.stopwatch.stage("gifs"):
-            _turntables(cfg, ctx, model, render, data, box)
+            _turntables(cfg, ctx, model, render, data, box, frames)
     steps = max(stats["steps"], 1)
     metrics.update({
         **{k: v for k, v in result.val_metrics().items() if k in ("val_psnr", "val_ssim")},
         "density": str(cfg.density.name), **{f"{k}_final": round(v, 6) for k, v in dens.stats().items()},
         "beta": float(cfg.beta), "iters": result.step, "n_params": sum(p.numel() for p in model.parameters()),
         "train_seconds": round(stats["train_seconds"], 4), "mesh_seconds": round(ctx.stopwatch.stages["mesh"], 4),
-        "gif_seconds": round(ctx.stopwatch.stages.get("gifs", 0.0), 4),
+        "gif_seconds": round(ctx.stopwatch.stages.get("gifs", 0.0), 4), "gif_frames": frames,
         "free_space_seconds": round(ctx.stopwatch.stages.get("free_space", 0.0), 4),
         "free_space_rays": 0 if free is None else len(free),
         "free_space_skipped": bool(int(fs.steps) > 0 and w_carve > 0 and free is None),
@@ -344,9 +345,9 @@ def _surface_metrics(cfg, ctx, model, field_fn, box, data) -> Dict[str, float]:
 
 
 @torch.no_grad()
-def _turntables(cfg, ctx, model, render, data, box) -> None:
+def _turntables(cfg, ctx, model, render, data, box, frames: int) -> None:
     """render.gif (colour | depth) and geometry.gif (sphere-traced SDF shading) about the data's up axis."""
-    cams = orbit_cameras(int(cfg.gif_frames), float(data.cameras.centers().norm(dim=-1).mean()),
+    cams = orbit_cameras(int(frames), float(data.cameras.centers().norm(dim=-1).mean()),
                          float(cfg.gif_elevation), float(data.cameras.fov()[0]),
                          turntable_width(cfg, data.cameras.width), up=data_up(data), device=ctx.device)
     write_turntable(ctx.path("render.gif"), color_depth_frames(render, int(cfg.chunk)), cams, cfg.fps)
