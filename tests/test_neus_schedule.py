@@ -103,3 +103,16 @@ def test_a_neus_silhouette_lies_on_the_zero_level_set(s):
         assert float(tau) == pytest.approx(_tau_past_a_sphere_float64(h, s), rel=1e-9)
         opacity = 1 - math.exp(-float(tau))       # entering (h < 0) too: 1 - Phi(h) / Phi(f_start)
         assert opacity == pytest.approx(1 / (1 + math.exp(s * h)), abs=2e-3)
+
+
+@pytest.mark.parametrize("override", ["density_along_ray=true", "quadrature=linear", "alpha=50"])
+def test_volsdf_only_knobs_are_refused_with_neus(compose, override):
+    import l3d_app.tasks  # noqa: F401
+    from l3d_app.errors import UserError
+    from l3d_app.registry import TASKS
+    cfg = compose("task=volsdf", "density=neus", override, "data=blender", "data.root=/no/such/folder")
+    with pytest.raises(UserError, match="needs density=volsdf"):
+        TASKS.get("volsdf")(cfg, None)
+    cfg = compose("task=volsdf", override, "data=blender", "data.root=/no/such/folder")
+    with pytest.raises(UserError, match="/no/such/folder"):      # accepted with VolSDF: stops at the data
+        TASKS.get("volsdf")(cfg, None)

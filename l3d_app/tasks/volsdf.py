@@ -124,6 +124,10 @@ def volsdf(cfg, ctx) -> dict:
     if int(fs.steps) > 0 and str(fs.loss) == "density" and str(cfg.density.name) != "volsdf":
         raise UserError(f"free_space.loss=density needs density=volsdf (a density per point), got density="
                         f"{cfg.density.name}: use free_space.loss=occupancy or outside")
+    if str(cfg.density.name) != "volsdf":     # VolSDF's own knobs would be silently ignored
+        for key, default in (("density_along_ray", False), ("quadrature", "left"), ("alpha", None)):
+            if cfg.get(key, default) != default:
+                raise UserError(f"{key}={cfg.get(key)} needs density=volsdf, got density={cfg.density.name}")
     if bool(cfg.density.get("along_ray", False)) and not hasattr(MODELS.get(str(cfg.model.name)), "sdf_rgb_grad"):
         raise UserError(f"density_along_ray needs a field with an exact gradient at evaluation (model=sdf_grid_field), "
                         f"got model={cfg.model.name}")
