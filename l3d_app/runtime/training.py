@@ -356,10 +356,10 @@ class _LoopClock:
 
         The latest, not the mean: an evaluation's cost follows the model (a neural surface
         that is still fuzzy skips no empty space, so volsdf's step-250 validation with a
-        starting beta of 0.3 took several times its later ones, and the loop keeps 39 of them
+        starting beta of 0.3 took several times its later ones, and the loop kept 39 of them
         for the final validation, the test views and gifs (`dev`: 20 test views at 2 x 2 rays and
-        72 gif frames against 4 one-ray views), so the mean stopped a 1500-step run at step 750;
-        3DGS evaluations grow with densification)."""
+        72 gif frames against 4 one-ray views; 21 since the gifs take what is left at the end), so
+        the mean stopped a 1500-step run at step 750; 3DGS evaluations grow with densification)."""
         return self.last_eval if (has_eval and self.evals) else 0.0
 
     def out_of_time(self, elapsed: float, has_eval: bool) -> bool:

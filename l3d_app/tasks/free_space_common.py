@@ -90,7 +90,7 @@ def stage_deadline(time_budget: float, elapsed: float, eval_seconds: Optional[fl
         reserve: the task's other seconds after training (artefacts).
     Returns:
         ``min(budget / 3, elapsed + (budget - elapsed - final) / 2)`` with ``final = eval_seconds x
-        (1 + evals_after) + reserve`` (the last validation, then the test views and gifs): the stage
+        (1 + evals_after) + reserve`` (the last validation, then the test views): the stage
         takes at most half of what the final work leaves; None (skip the stage) when that leaves it
         under ``minimum`` seconds.
     """

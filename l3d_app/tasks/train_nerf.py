@@ -9,8 +9,9 @@ Each step: ``batch_rays`` random pixels of the TRAIN views, colour MSE. Every ``
 steps the shared loop evaluates the VALIDATION views (``eval_views`` of them; PSNR / SSIM and
 a ``pred | truth | error | depth`` picture in TensorBoard); the TEST views are rendered once,
 after training (``psnr``, ``ssim`` in metrics.json; ``val_*`` the last validation).
-``time_budget`` > 0: wall seconds for the whole task, ``reserve`` of them kept for the test
-evaluation and the artefacts. Outputs: ``turntable.gif`` (colour | depth, orbiting the data's
+``time_budget`` > 0: wall seconds for the whole task; the loop keeps time for the test views
+(priced at its validations) and ``reserve`` seconds (the mesh); the gif comes last with the
+frames that still fit (:func:`~l3d_app.tasks.field_common.gif_frames_in_budget`). Outputs: ``turntable.gif`` (colour | depth, orbiting the data's
 up axis), ``test_views.png``, ``metrics.json``; ``extract_mesh=true`` adds ``mesh.<fmt>`` of
 ``density = mesh_threshold`` coloured by the field (with ``mesh_cull``: only the faces some
 training camera sees; the whole level set in ``mesh_uncut.ply``).
