@@ -1,27 +1,30 @@
-"""Under a time budget the turntables take what is left after the test views: counts by hand."""
+"""Under a time budget the turntables take what is left after the test views: counts by hand, and the
+probe frame that prices them against a fake clock."""
 
+import time
 from types import SimpleNamespace
 
 import pytest
 from omegaconf import OmegaConf
 
-from l3d_app.tasks.field_common import evals_after_training, gif_frames_in_budget, turntable_frames_that_fit
+from l3d_app.tasks import field_common
+from l3d_app.tasks.field_common import evals_after_training, turntable_frames_that_fit, write_turntables
 
 
 def test_all_frames_without_a_budget():
-    assert turntable_frames_that_fit(36, None, 1.0, 128, gifs=2) == 36
-    assert turntable_frames_that_fit(0, 5.0, 1e-4, 128) == 0
+    assert turntable_frames_that_fit(36, None, 1.0) == 36
+    assert turntable_frames_that_fit(0, 5.0, 0.1) == 0
 
 
 @pytest.mark.parametrize("left,expected", [(100.0, 36), (10.0, 36), (5.0, 24), (2.0, 9), (1.5, 0), (-3.0, 0)])
 def test_frames_that_fit_the_time_left(left, expected):
-    """1e-4 s per ray, 32 px frames, two gifs: 2 x 1024 x 1e-4 = 0.2048 s per frame; fewer than 8: none."""
-    assert turntable_frames_that_fit(36, left, 1e-4, 32, gifs=2) == expected
+    """0.2048 s per frame (of all gifs); fewer than 8: none."""
+    assert turntable_frames_that_fit(36, left, 0.2048) == expected
 
 
 def test_a_short_turntable_is_kept_whole_when_it_fits():
-    assert turntable_frames_that_fit(4, 1.0, 1e-4, 32, gifs=2) == 4      # 4 asked, 4 fit (0.82 s)
-    assert turntable_frames_that_fit(4, 0.5, 1e-4, 32, gifs=2) == 0      # 2 fit: fewer than asked and than 8
+    assert turntable_frames_that_fit(4, 1.0, 0.2048) == 4      # 4 asked, 4 fit (0.82 s)
+    assert turntable_frames_that_fit(4, 0.5, 0.2048) == 0      # 2 fit: fewer than asked and than 8
 
 
 class _Log:
@@ -32,22 +35,35 @@ class _Log:
         self.notes.append((tag, value))
 
 
-def _ctx(test_seconds, elapsed):
-    return SimpleNamespace(stopwatch=SimpleNamespace(stages={"test": test_seconds}, elapsed=elapsed), logger=_Log())
+def _run(monkeypatch, tmp_path, elapsed, budget=590.0, asked=36):
+    """Two gifs whose frames cost 0.125 s each on a fake clock: one probe frame of both = 0.25 s."""
+    clock = {"t": 0.0}
+    monkeypatch.setattr(time, "perf_counter", lambda: clock["t"])
+    monkeypatch.setattr(field_common, "turntable_orbit", lambda cfg, data, n, device: SimpleNamespace(n=n))
+    written = []
+    import l3d_app.render.turntable as turntable
+    monkeypatch.setattr(turntable, "write_turntable", lambda path, fn, cams, fps: written.append((path.name, cams.n)))
+
+    def frames_fn(cams):
+        clock["t"] += 0.125 * cams.n
+
+    ctx = SimpleNamespace(stopwatch=SimpleNamespace(elapsed=elapsed), logger=_Log(), device="cpu",
+                          path=lambda name: tmp_path / name)
+    cfg = OmegaConf.create({"gif_frames": asked, "time_budget": budget, "fps": 12})
+    frames = write_turntables(cfg, ctx, None, {"render.gif": frames_fn, "geometry.gif": frames_fn})
+    return frames, written, ctx.logger.notes
 
 
-def test_the_task_helper_reads_the_test_views_cost_and_the_budget():
-    cfg = OmegaConf.create({"gif_frames": 36, "time_budget": 590})
-    # 20 test views of 64 x 64 at 2 x 2 rays = 327680 rays in 32.768 s: 1e-4 s per ray; 32 px frames
-    ctx = _ctx(32.768, 585.0)                             # 5 s left: 24 frames of two gifs
-    assert gif_frames_in_budget(cfg, ctx, 2, 327680, 32) == 24
-    assert ctx.logger.notes and ctx.logger.notes[0][0] == "gifs" and "24 of 36" in ctx.logger.notes[0][1]
-    ctx = _ctx(32.768, 100.0)                             # plenty left: all, no note
-    assert gif_frames_in_budget(cfg, ctx, 2, 327680, 32) == 36 and not ctx.logger.notes
-    ctx = _ctx(32.768, 600.0)                             # over budget already: none
-    assert gif_frames_in_budget(cfg, ctx, 2, 327680, 32) == 0 and "no gif" in ctx.logger.notes[0][1]
-    no_budget = OmegaConf.create({"gif_frames": 36, "time_budget": 0})
-    assert gif_frames_in_budget(no_budget, _ctx(32.768, 10_000.0), 2, 327680, 32) == 36
+def test_the_probe_frame_prices_the_turntables(monkeypatch, tmp_path):
+    frames, written, notes = _run(monkeypatch, tmp_path, elapsed=585.0)          # 5 s left at 0.25 s: 20
+    assert frames == 20 and written == [("render.gif", 20), ("geometry.gif", 20)]
+    assert notes and notes[0][0] == "gifs" and "20 of 36" in notes[0][1] and "0.25 s per frame" in notes[0][1]
+    frames, written, notes = _run(monkeypatch, tmp_path, elapsed=100.0)          # plenty: all, no note
+    assert frames == 36 and written == [("render.gif", 36), ("geometry.gif", 36)] and not notes
+    frames, written, notes = _run(monkeypatch, tmp_path, elapsed=589.0)          # 1 s: 4 frames < 8: none
+    assert frames == 0 and written == [] and "no gif" in notes[0][1]
+    frames, written, notes = _run(monkeypatch, tmp_path, elapsed=10_000.0, budget=0)   # no budget: no probe
+    assert frames == 36 and written == [("render.gif", 36), ("geometry.gif", 36)] and not notes
 
 
 def test_the_loop_reserve_holds_the_test_views_only():

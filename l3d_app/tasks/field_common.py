@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Dict, Optional, Tuple
+from typing import Callable, Dict, Optional, Tuple
 
 import torch
 
@@ -70,39 +70,64 @@ def turntable_width(cfg, data_width: int) -> int:
     return min(int(data_width), cap) if cap > 0 else int(data_width)
 
 
-def turntable_frames_that_fit(frames: int, seconds_left: Optional[float], seconds_per_ray: float,
-                              frame_size: int, gifs: int = 1, least: int = 8) -> int:
-    """How many of ``frames`` turntable frames a run renders after its test views: all of them
-    without a time budget (``seconds_left`` None), else as many as fit ``seconds_left`` (the
-    budget less the elapsed wall time) when each of the ``gifs`` turntables costs ``frame_size``^2
-    rays per frame at ``seconds_per_ray`` (the test views' measured cost: conservative, a
-    turntable renders one ray per pixel and ``geometry.gif`` sphere-traces). 0 (no gif) when
-    fewer than ``least`` frames fit: a turntable is a preview no metric reads, so under a budget
-    the training steps come first and the gifs take what is left (``evals_after_training``
-    leaves them out of the loop's reserve)."""
+def turntable_frames_that_fit(frames: int, seconds_left: Optional[float], seconds_per_frame: float,
+                              least: int = 8) -> int:
+    """How many of ``frames`` turntable frames a run renders at its end: all of them without a
+    time budget (``seconds_left`` None), else as many as fit ``seconds_left`` at
+    ``seconds_per_frame`` (one frame of every turntable the task writes); 0 (no gif) when fewer
+    than ``least`` fit (or fewer than ``frames`` when that is smaller): a turntable is a preview no
+    metric reads, so under a budget the training steps come first and the gifs take what is left
+    (``evals_after_training`` leaves them out of the loop's reserve)."""
     frames = int(frames)
     if seconds_left is None or frames <= 0:
         return max(frames, 0)
-    per_frame = max(float(seconds_per_ray), 0.0) * int(frame_size) ** 2 * max(int(gifs), 1)
+    per_frame = max(float(seconds_per_frame), 0.0)
     fit = frames if per_frame <= 0 else int(max(float(seconds_left), 0.0) // per_frame)
     fit = min(frames, fit)
     return fit if fit >= min(int(least), frames) else 0
 
 
-def gif_frames_in_budget(cfg, ctx, gifs: int, test_rays: int, frame_size: int) -> int:
-    """The turntable frames a field task writes after its test views (``stage("test")`` of
-    ``ctx.stopwatch``, ``test_rays`` rays): ``cfg.gif_frames``, or with ``cfg.time_budget`` > 0 what
-    :func:`turntable_frames_that_fit` leaves in the budget for ``gifs`` turntables of ``frame_size``
-    px (a TensorBoard note ``gifs`` says when fewer are written)."""
+def turntable_orbit(cfg, data, frames: int, device) -> Cameras:
+    """``frames`` cameras orbiting the data's up axis at the cameras' mean distance, ``cfg.gif_elevation``
+    degrees, the data's field of view, :func:`turntable_width` px."""
+    from l3d_app.render.turntable import data_up, orbit_cameras
+    return orbit_cameras(int(frames), float(data.cameras.centers().norm(dim=-1).mean()), float(cfg.gif_elevation),
+                         float(data.cameras.fov()[0]), turntable_width(cfg, data.cameras.width), up=data_up(data),
+                         device=device)
+
+
+def write_turntables(cfg, ctx, data, gifs: Dict[str, Callable[[Cameras], torch.Tensor]]) -> int:
+    """Write each ``gifs`` entry (file name -> ``frames_fn(cameras) -> (N, H, W, 3)``) as a turntable of
+    ``cfg.gif_frames`` frames; with ``cfg.time_budget`` > 0 first render one frame of each (timed,
+    discarded) and write only the frames that then fit the time left (:func:`turntable_frames_that_fit`;
+    a TensorBoard note ``gifs`` says when fewer). Rendered without autograd. Returns the frames written
+    per gif."""
+    with torch.no_grad():
+        return _write_turntables(cfg, ctx, data, gifs)
+
+
+def _write_turntables(cfg, ctx, data, gifs: Dict[str, Callable[[Cameras], torch.Tensor]]) -> int:
+    import time
+
+    from l3d_app.render.turntable import write_turntable
     asked, budget = int(cfg.gif_frames), float(cfg.time_budget)
-    if asked <= 0 or budget <= 0:
-        return max(asked, 0)
-    per_ray = ctx.stopwatch.stages.get("test", 0.0) / max(int(test_rays), 1)
-    left = budget - ctx.stopwatch.elapsed
-    frames = turntable_frames_that_fit(asked, left, per_ray, frame_size, gifs)
-    if frames < asked:
-        ctx.logger.text("gifs", f"time budget {budget:g} s: {frames} of {asked} turntable frames fit the "
-                                f"{max(left, 0.0):.1f} s left ({'no gif' if frames == 0 else 'fewer frames'})")
+    frames = max(asked, 0)
+    if asked > 0 and budget > 0:
+        probe = turntable_orbit(cfg, data, 1, ctx.device)
+        t0 = time.perf_counter()
+        for frames_fn in gifs.values():
+            frames_fn(probe)
+        per_frame = time.perf_counter() - t0
+        left = budget - ctx.stopwatch.elapsed
+        frames = turntable_frames_that_fit(asked, left, per_frame)
+        if frames < asked:
+            ctx.logger.text("gifs", f"time budget {budget:g} s: {frames} of {asked} turntable frames fit the "
+                                    f"{max(left, 0.0):.1f} s left at {per_frame:.2f} s per frame "
+                                    f"({'no gif' if frames == 0 else 'fewer frames'})")
+    if frames > 0:
+        cams = turntable_orbit(cfg, data, frames, ctx.device)
+        for name, frames_fn in gifs.items():
+            write_turntable(ctx.path(name), frames_fn, cams, cfg.fps)
     return frames
 
 

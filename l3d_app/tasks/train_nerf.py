@@ -28,7 +28,7 @@ from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import DATASETS, MODELS, SAMPLERS, TASKS
 from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
 from l3d_app.render.radiance import render_field_rays
-from l3d_app.render.turntable import color_depth_frames, data_up, orbit_cameras, write_turntable
+from l3d_app.render.turntable import color_depth_frames
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.precision import maybe_compile
@@ -36,7 +36,7 @@ from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import background_parameter, require_mesh_resolution, require_positive
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
-                                        gif_frames_in_budget, turntable_width)
+                                        write_turntables)
 
 
 @TASKS.register("train_nerf")
@@ -111,9 +111,8 @@ def train_nerf(cfg, ctx) -> dict:
                        reserve_evals=evals_after_training(     # the test views (the gif takes what is left)
                            len(val), len(data.test), 0, 0, data.image_size))
     with torch.no_grad():
-        with ctx.stopwatch.stage("test"):
-            sampler.update(result.step, model, ctx.generator)
-            test, picture, _ = evaluate(data.test)                              # the one test evaluation
+        sampler.update(result.step, model, ctx.generator)
+        test, picture, _ = evaluate(data.test)                                  # the one test evaluation
         log_test(ctx, test, result.step, images={"views": picture})
         save_png(ctx.path("test_views.png"), picture)
         metrics = {k: round(v, 4) for k, v in test.items()}
@@ -130,14 +129,8 @@ def train_nerf(cfg, ctx) -> dict:
                                                                                int(cfg.mesh_resolution))
                 save_field_mesh(mesh, ctx.path("mesh"), list(cfg.mesh_formats))
             metrics["mesh_faces"] = 0 if mesh is None else int(mesh.num_faces)
-        width = turntable_width(cfg, data.cameras.width)
-        frames = gif_frames_in_budget(cfg, ctx, 1, len(data.test) * data.image_size[0] * data.image_size[1], width)
-        if frames > 0:
-            cams = orbit_cameras(frames, float(data.cameras.centers().norm(dim=-1).mean()),
-                                 float(cfg.gif_elevation), float(data.cameras.fov()[0]), width,
-                                 up=data_up(data), device=ctx.device)
-            write_turntable(ctx.path("turntable.gif"), color_depth_frames(render_fn, int(cfg.chunk)), cams, cfg.fps)
-        metrics["gif_frames"] = frames
+        metrics["gif_frames"] = write_turntables(cfg, ctx, data,
+                                                 {"turntable.gif": color_depth_frames(render_fn, int(cfg.chunk))})
     metrics.update({**{k: v for k, v in result.val_metrics().items() if k in ("val_psnr", "val_ssim")},
                     **result.timing(), "n_params": sum(p.numel() for p in model.parameters()),
                     **{k: round(float(v), 5) for k, v in figures().items()}, "history": result.history_rows()})

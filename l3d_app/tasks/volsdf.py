@@ -76,7 +76,7 @@ surface scores are of the culled mesh); ``test_views.png``; ``metrics.json``.
 from __future__ import annotations
 
 import time
-from typing import Dict, Tuple
+from typing import Callable, Dict, Tuple
 
 import torch
 
@@ -97,7 +97,7 @@ from l3d_app.render.free_space import near_surface_weight
 from l3d_app.render.rgbd import true_depth_maps
 from l3d_app.render.sdf_volume import render_sdf_rays
 from l3d_app.render.sphere_tracing import render_sdf_shaded
-from l3d_app.render.turntable import color_depth_frames, data_up, orbit_cameras, write_turntable
+from l3d_app.render.turntable import color_depth_frames
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.optim import build_optimizer
@@ -106,7 +106,7 @@ from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import (background_parameter, require_mesh_resolution, require_nonnegative,
                                  require_positive)
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
-                                        gif_frames_in_budget, turntable_width)
+                                        write_turntables)
 from l3d_app.tasks.free_space_common import FILE as FREE_SPACE_FILE
 from l3d_app.tasks.free_space_common import (MIN_STAGE_SECONDS, check_free_space_config, fit_free_rays,
                                                resolve_free_space, stage_deadline)
@@ -274,7 +274,7 @@ def volsdf(cfg, ctx) -> dict:
                        time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
                        reserve_evals=evals_after, horizon=horizon)
     model.eval()
-    with torch.no_grad(), ctx.stopwatch.stage("test"):
+    with torch.no_grad():
         sampler.update(result.step, model, ctx.generator, force=True)
         test, picture, _ = evaluate(data.test, int(cfg.supersample))             # the one test evaluation
         log_test(ctx, test, result.step, images={"views": picture})
@@ -283,11 +283,10 @@ def volsdf(cfg, ctx) -> dict:
     metrics.update(before_after.save(ctx))
     with ctx.stopwatch.stage("mesh"):
         metrics.update(_surface_metrics(cfg, ctx, model, field_fn, box, data))
-    frames = gif_frames_in_budget(cfg, ctx, 2, len(data.test) * data.image_size[0] * data.image_size[1]
-                                  * int(cfg.supersample) ** 2, turntable_width(cfg, data.cameras.width))
-    if frames > 0:
+    frames = 0
+    if int(cfg.gif_frames) > 0:
         with ctx.stopwatch.stage("gifs"):
-            _turntables(cfg, ctx, model, render, data, box, frames)
+            frames = write_turntables(cfg, ctx, data, _turntable_frames(cfg, model, render, box))
     steps = max(stats["steps"], 1)
     metrics.update({
         **{k: v for k, v in result.val_metrics().items() if k in ("val_psnr", "val_ssim")},
@@ -349,12 +348,9 @@ def _surface_metrics(cfg, ctx, model, field_fn, box, data) -> Dict[str, float]:
     return out
 
 
-@torch.no_grad()
-def _turntables(cfg, ctx, model, render, data, box, frames: int) -> None:
-    """render.gif (colour | depth) and geometry.gif (sphere-traced SDF shading) about the data's up axis."""
-    cams = orbit_cameras(int(frames), float(data.cameras.centers().norm(dim=-1).mean()),
-                         float(cfg.gif_elevation), float(data.cameras.fov()[0]),
-                         turntable_width(cfg, data.cameras.width), up=data_up(data), device=ctx.device)
-    write_turntable(ctx.path("render.gif"), color_depth_frames(render, int(cfg.chunk)), cams, cfg.fps)
+def _turntable_frames(cfg, model, render, box) -> Dict[str, Callable]:
+    """render.gif (colour | depth) and geometry.gif (sphere-traced SDF shading): their frame functions
+    (about the data's up axis: :func:`~l3d_app.tasks.field_common.write_turntables`)."""
     shade = lambda o, d: {"color": render_sdf_shaded(model.sdf, o, d, box)}  # noqa: E731
-    write_turntable(ctx.path("geometry.gif"), lambda c: render_views(shade, c, int(cfg.chunk))["color"], cams, cfg.fps)
+    return {"render.gif": color_depth_frames(render, int(cfg.chunk)),
+            "geometry.gif": lambda c: render_views(shade, c, int(cfg.chunk))["color"]}
