@@ -96,17 +96,13 @@ def turntable_orbit(cfg, data, frames: int, device) -> Cameras:
                          device=device)
 
 
+@torch.no_grad()
 def write_turntables(cfg, ctx, data, gifs: Dict[str, Callable[[Cameras], torch.Tensor]]) -> int:
     """Write each ``gifs`` entry (file name -> ``frames_fn(cameras) -> (N, H, W, 3)``) as a turntable of
     ``cfg.gif_frames`` frames; with ``cfg.time_budget`` > 0 first render one frame of each (timed,
     discarded) and write only the frames that then fit the time left (:func:`turntable_frames_that_fit`;
     a TensorBoard note ``gifs`` says when fewer). Rendered without autograd. Returns the frames written
     per gif."""
-    with torch.no_grad():
-        return _write_turntables(cfg, ctx, data, gifs)
-
-
-def _write_turntables(cfg, ctx, data, gifs: Dict[str, Callable[[Cameras], torch.Tensor]]) -> int:
     import time
 
     from l3d_app.render.turntable import write_turntable

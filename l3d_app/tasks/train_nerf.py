@@ -11,7 +11,7 @@ a ``pred | truth | error | depth`` picture in TensorBoard); the TEST views are r
 after training (``psnr``, ``ssim`` in metrics.json; ``val_*`` the last validation).
 ``time_budget`` > 0: wall seconds for the whole task; the loop keeps time for the test views
 (priced at its validations) and ``reserve`` seconds (the mesh); the gif comes last with the
-frames that still fit (:func:`~l3d_app.tasks.field_common.gif_frames_in_budget`). Outputs: ``turntable.gif`` (colour | depth, orbiting the data's
+frames that still fit (:func:`~l3d_app.tasks.field_common.write_turntables`). Outputs: ``turntable.gif`` (colour | depth, orbiting the data's
 up axis), ``test_views.png``, ``metrics.json``; ``extract_mesh=true`` adds ``mesh.<fmt>`` of
 ``density = mesh_threshold`` coloured by the field (with ``mesh_cull``: only the faces some
 training camera sees; the whole level set in ``mesh_uncut.ply``).

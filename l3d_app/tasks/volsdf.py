@@ -56,7 +56,7 @@ Evaluation: every ``eval_every`` steps on the VALIDATION views (PSNR / SSIM and 
 end (``psnr``, ``ssim``; ``val_*`` the last validation). ``time_budget`` > 0: wall seconds
 for the whole task, ``reserve`` of them kept for the mesh and its scores (the test views are
 reserved from the measured evaluation time; the gifs come last with the frames that still fit,
-:func:`~l3d_app.tasks.field_common.gif_frames_in_budget`); when the budget stops training before ``iters``,
+:func:`~l3d_app.tasks.field_common.write_turntables`); when the budget stops training before ``iters``,
 the LR, beta anneal and level schedules follow the loop's prediction of its last step
 (:class:`~l3d_app.runtime.horizon.Horizon`), so the run still ends annealed. A marching-cubes mesh of the SDF's zero level set, scored
 against the ground-truth surface when the data carries one (``data.mesh``; the built-in scene) by
