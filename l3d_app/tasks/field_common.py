@@ -127,18 +127,15 @@ def write_turntables(cfg, ctx, data, gifs: Dict[str, Callable[[Cameras], torch.T
     return frames
 
 
-def evals_after_training(n_eval_views: int, n_test_views: int, frames: int = 0, frame_size: int = 0,
-                         image_hw: Tuple[int, int] = (1, 1), supersample: int = 1,
+def evals_after_training(n_eval_views: int, n_test_views: int, supersample: int = 1,
                          val_supersample: Optional[int] = None) -> float:
-    """The rendering a field task does after its training loop (the test views of ``image_hw``
-    at ``supersample``^2 rays per pixel, then ``frames`` turntable frames of ``frame_size``^2
-    pixels at one ray each), in units of one validation evaluation (``n_eval_views`` views of
-    ``image_hw`` at ``val_supersample``^2 rays per pixel; None: ``supersample``); the loop
-    turns it into seconds with its own timing (``train(reserve_evals=...)``)."""
+    """The rendering a field task keeps time for after its training loop (the test views at
+    ``supersample``^2 rays per pixel; the turntables are not kept for:
+    :func:`write_turntables` gives them what is left), in units of one validation evaluation
+    (``n_eval_views`` views of the same size at ``val_supersample``^2 rays per pixel; None:
+    ``supersample``); the loop turns it into seconds with its own timing (``train(reserve_evals=...)``)."""
     val_ss = supersample if val_supersample is None else int(val_supersample)
-    view = image_hw[0] * image_hw[1]
-    after = n_test_views * view * supersample ** 2 + frames * frame_size ** 2
-    return after / max(1, n_eval_views * view * val_ss ** 2)
+    return n_test_views * supersample ** 2 / max(1, n_eval_views * val_ss ** 2)
 
 
 def cull_to_training_views(mesh: Mesh, data, box, resolution: int) -> Tuple[Mesh, float]:

@@ -109,7 +109,7 @@ def train_nerf(cfg, ctx) -> dict:
                        resume=bool(cfg.resume), desc="train_nerf", after_step=after_step,
                        time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
                        reserve_evals=evals_after_training(     # the test views (the gif takes what is left)
-                           len(val), len(data.test), 0, 0, data.image_size))
+                           len(val), len(data.test)))
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator)
         test, picture, _ = evaluate(data.test)                                  # the one test evaluation

@@ -175,7 +175,7 @@ def volsdf(cfg, ctx) -> dict:
 
     val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val
     evals_after = evals_after_training(   # the test views, in validations (the gifs take what is left at the end)
-        len(val), len(data.test), 0, 0, data.image_size, int(cfg.supersample), int(cfg.val_supersample))
+        len(val), len(data.test), int(cfg.supersample), int(cfg.val_supersample))
     resuming = bool(cfg.resume) and ctx.path("checkpoint.pt").exists()
     before_after, before_seconds = BeforeAfter(), None
     if len(val) and bool(cfg.before_after) and not resuming:   # timed: the dearest validation (fuzzy start)
