@@ -14,7 +14,8 @@ Neuralangelo recipe in pure PyTorch:
 * **Exact gradient without double backward**: :func:`grid_encode_with_jacobian` returns the
   trilinear features AND their spatial Jacobian from one table gather (the derivative of a
   trilinear weight is a product of two weights times the level's cells per unit); the
-  Jacobian is pushed through the MLP in forward mode. ``grad f`` is then an ordinary
+  MLP's row ``d f / d h`` is taken back through its layers (matrix products, ``f`` being one
+  scalar per point) and contracted with that Jacobian. ``grad f`` is then an ordinary
   differentiable expression: the eikonal loss and normal-conditioned colour backpropagate
   with one first-order backward (autograd's create_graph path through the hashed gather is
   about twice as slow on CPU). :func:`finite_difference_gradient` is the Neuralangelo-style
@@ -39,6 +40,7 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.models.encodings import GridEncoding
 from l3d_app.models.sdf_net import fit_to_sphere, geometric_init
+from l3d_app.models.table_gather import gather_rows
 from l3d_app.registry import MODELS
 
 
@@ -58,18 +60,22 @@ def grid_encode_with_jacobian(enc: GridEncoding, x: torch.Tensor) -> Tuple[torch
     pos = u.clamp(0.0, 1.0)[:, :, None] * (res - 1).to(x.dtype)                      # (N, 3, L)
     frac = (pos - torch.minimum(pos.floor(), (res - 2).to(x.dtype)))[..., None]      # (N, 3, L, 1)
     fx, fy, fz = frac[:, 0], frac[:, 1], frac[:, 2]                                  # (N, L, 1)
-    c = enc.table.index_select(0, idx.reshape(-1)).view(2, 2, 2, *idx.shape[1:], enc.n_features)
-    dz = c[:, :, 1] - c[:, :, 0]                                                     # (2, 2, N, L, F)
-    cz = c[:, :, 0] + fz * dz
-    dy = cz[:, 1] - cz[:, 0]                                                         # (2, N, L, F)
-    cy = cz[:, 0] + fy * dy
-    dzy = dz[:, 0] + fy * (dz[:, 1] - dz[:, 0])
-    dx = cy[1] - cy[0]                                                               # (N, L, F)
-    value = cy[0] + fx * dx
-    jac = torch.stack([dx, dy[0] + fx * (dy[1] - dy[0]), dzy[0] + fx * (dzy[1] - dzy[0])], dim=-1)
+    c = gather_rows(enc.table, idx.reshape(-1)).view(2, 2, 2, *idx.shape[1:], enc.n_features)
+    # unbind, not indexing: the backward of each index would zero-fill a tensor of c's size
+    cz0, cz1 = c.unbind(2)                                                           # (2, 2, N, L, F)
+    dz = cz1 - cz0
+    cy0, cy1 = (cz0 + fz * dz).unbind(1)                                             # (2, N, L, F)
+    dy = cy1 - cy0
+    dz0, dz1 = dz.unbind(1)
+    dzy0, dzy1 = (dz0 + fy * (dz1 - dz0)).unbind(0)                                  # (N, L, F)
+    cx0, cx1 = (cy0 + fy * dy).unbind(0)
+    dx = cx1 - cx0
+    dy0, dy1 = dy.unbind(0)
+    value = cx0 + fx * dx
+    jac = torch.stack([dx, dy0 + fx * (dy1 - dy0), dzy0 + fx * (dzy1 - dzy0)], dim=-1)  # (N, L, F, 3)
     inside = ((u >= 0) & (u <= 1)).to(x.dtype)                                       # (N, 3)
     scale = (res - 1).to(x.dtype)[:, None] / (hi - lo)[None, :]                      # (L, 3)
-    jac = jac * (scale[None, :, None, :] * inside[:, None, None, :])                 # (N, L, F, 3)
+    jac = jac * (scale[None, :, None, :] * inside[:, None, None, :])
     return value.reshape(x.shape[0], enc.out_dim), jac.reshape(x.shape[0], enc.out_dim, 3)
 
 
@@ -216,14 +222,18 @@ class SDFGridField(torch.nn.Module):
         mask = self._mask()
         enc, jac = grid_encode_with_jacobian(self.encoding, x)
         h = torch.cat([x, enc * mask], dim=-1)                                        # (N, D)
-        eye = torch.eye(3, dtype=x.dtype, device=x.device).expand(x.shape[0], 3, 3)
-        jh = torch.cat([eye, jac * mask[:, None]], dim=1)                             # (N, D, 3)
+        pre = []
         for lin in self.layers:
-            z = lin(h)
-            jh = torch.einsum("hd,ndk->nhk", lin.weight, jh) * self.act.derivative(z)[..., None]
-            h = self.act(z)
+            pre.append(lin(h))
+            h = self.act(pre[-1])
         out = self.out(h)
-        grad = torch.einsum("d,ndk->nk", self.out.weight[0], jh)
+        # grad f = d f / d x by the chain rule taken from the output back (f is a scalar per point):
+        # v = w_f diag(act'(z_L)) W_L ... diag(act'(z_1)) W_1, a (N, D) row per point from mm's,
+        # then grad = v_x + v_enc J_enc; the same products as pushing the (N, D, 3) Jacobian forward
+        v = self.out.weight[0].expand(x.shape[0], -1)                                 # (N, H)
+        for lin, z in zip(reversed(self.layers), reversed(pre)):
+            v = (v * self.act.derivative(z)) @ lin.weight                             # (N, D_in)
+        grad = v[:, :3] + ((v[:, 3:] * mask)[:, :, None] * jac).sum(dim=1)
         return out[..., 0], out[..., 1:], grad
 
     # ------------------------------------------------------------------ colour
