@@ -87,3 +87,31 @@ def test_the_reserve_in_evaluations_follows_the_measured_evaluation_cost(tmp_pat
     evals["n"] = 0
     result = train(ctx, trainable, step_fn, iters=100, eval_fn=eval_fn, eval_every=2)
     assert result.step > 8 and result.budget_stop
+
+
+def test_a_stale_evaluation_price_is_refreshed_before_a_budget_stop(tmp_path):
+    # steps cost 10 s; a validation every 50 steps, the first 40 s, later ones 5 s (a fuzzy model
+    # renders slower than the sharp one); 10 evaluations' worth follow the loop; budget 1100 s.
+    # After step k (50 < k) the clock reads 10 k + 40. Priced at 40 s the loop stops at the first k
+    # with 10 k + 40 + 40 x 11 >= 1100: k = 62. That price is 12 steps old (>= max(1, 50 // 5) = 10),
+    # so the loop validates again (5 s: 665 s) and re-prices: 665 + 5 x 11 = 720 < 1100 -> on.
+    # Then 10 k + 45 + 55 >= 1100 first at k = 100, where the periodic validation (5 s) is fresh:
+    # 1050 + 55 = 1105 -> stop, no further refresh and no second final validation.
+    ctx, trainable, step = setup(tmp_path, budget=1100.0)
+    seen = {"extra": 0.0, "steps": []}
+
+    def step_fn(i):
+        out = step(i)
+        ctx.stopwatch.elapsed += seen["extra"]
+        return out
+
+    def eval_fn(s):
+        cost = 5.0 if seen["steps"] else 40.0
+        seen["extra"] += cost
+        ctx.stopwatch.elapsed += cost
+        seen["steps"].append(s)
+        return {"x": 0.0}
+    result = train(ctx, trainable, step_fn, iters=1000, eval_fn=eval_fn, eval_every=50, reserve_evals=10.0)
+    assert result.budget_stop and result.step == 100
+    assert seen["steps"] == [50, 62, 100]
+    assert [s for s, _ in result.history] == [50, 62, 100]

@@ -221,7 +221,10 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
         reserve_evals: more time kept after the loop, in units of one validation evaluation
             as timed in this run, the latest one (e.g. 20 test views + 36 turntable frames after 4-view
             evaluations: 14): what follows the loop is mostly rendering, whose cost the loop
-            measures, so the budget holds on any machine and image size.
+            measures, so the budget holds on any machine and image size. Before a budget stop
+            whose price is a validation ``eval_every // 5`` or more steps old, the loop validates
+            again and stops only if the new price still says so (volsdf's step-250 validation of
+            a fuzzy surface priced its 256 px test views 2.4x too dear on a slow machine).
         horizon: a :class:`~l3d_app.runtime.horizon.Horizon` the loop updates after every
             step with its prediction of the last step the budget lets it run (periodic
             evaluations, the final one, ``reserve_evals`` and ``reserve`` included), so the
@@ -310,6 +313,15 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                 horizon.update(done, clock.predicted_steps(ctx.stopwatch.elapsed, done, eval_fn is not None,
                                                            eval_every))
             if done < iters and clock.out_of_time(ctx.stopwatch.elapsed, eval_fn is not None):
+                if _stale_price(history, done, eval_fn, eval_every):
+                    # the latest validation priced an earlier model (a fuzzy surface renders several
+                    # times slower than the sharp one): validate now, the final validation if the
+                    # stop stands, a periodic one with the new price if it does not
+                    metrics = clock.timed_eval(lambda: _evaluate(ctx, eval_fn, done, history))
+                    if horizon is not None:
+                        horizon.update(done, clock.predicted_steps(ctx.stopwatch.elapsed, done, True, eval_every))
+                    if not clock.out_of_time(ctx.stopwatch.elapsed, True):
+                        continue
                 clock.budget_stop = True
                 ctx.logger.text("train/budget", f"time budget {time_budget:g} s: stopped at step {done}")
                 break
@@ -327,6 +339,15 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                        skipped_steps=skipped, restores=restores, history=list(history["eval"]),
                        train_seconds=clock.train_seconds, steps_run=clock.steps,
                        budget_stop=clock.budget_stop)
+
+
+def _stale_price(history: Dict[str, Any], done: int, eval_fn, eval_every: int) -> bool:
+    """Whether a budget stop at step ``done`` would rest on a validation at least
+    ``max(1, eval_every // 5)`` steps old (there is one to refresh; at most one refresh per
+    that many steps, so a loop near its budget does not validate at every step)."""
+    if eval_fn is None or not history["eval"]:
+        return False
+    return done - history["eval"][-1][0] >= max(1, int(eval_every or 0) // 5)
 
 
 class _LoopClock:
