@@ -35,8 +35,8 @@ def test_gather_rows_without_gradients_is_a_plain_index_select():
 
 
 def test_grid_sdf_parameter_gradients_through_its_analytic_gradient_match_double_backward():
-    """The eikonal loss (and colour) backpropagate through sdf_features_gradient's hand-made
-    spatial gradient; autograd's create_graph path through model.sdf is the independent reference."""
+    """The eikonal loss and a term linear in grad f backpropagate through sdf_features_gradient's
+    hand-made spatial gradient; autograd's create_graph path through model.sdf is the independent reference."""
     torch.manual_seed(1)
     field = SDFGridField(scene_box=((-1.0,) * 3, (1.0,) * 3), n_levels=4, base_resolution=3, max_resolution=30,
                          log2_hashmap_size=9, hidden=16, n_layers=2, sdf_features=3, color_hidden=8,

@@ -2,8 +2,8 @@
 
 The grid encodings read ``8 x N x L`` table rows per call (8 corners, N points, L levels);
 autograd's backward of ``index_select`` is ``index_add_``, which on CPU adds one row at a
-time and was the largest single cost of a volsdf training step (54 ms for 1.1M rows of 2
-features on 2 cores, against 14 ms for ``torch.bincount`` with weights, ``bench/`` timing in
+time: 11% of a volsdf training step's CPU time in a profile, and several times slower than
+``torch.bincount`` with weights on the same rows (``python bench/bench_table_gather.py``,
 docs/cpu_frontier.md). :func:`gather_rows` gathers like ``index_select`` and, on CPU,
 accumulates the rows' gradients with one weighted ``bincount`` per feature column (in the
 table's dtype, like ``index_add_``); on other devices it keeps ``index_add_`` (atomic adds).
