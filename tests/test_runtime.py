@@ -55,6 +55,21 @@ def test_gif_roundtrip(tmp_path):
     assert back.shape[:3] == (3, 8, 10)
 
 
+def test_gif_bytes_are_the_file_and_keep_few_colours_exactly(tmp_path):
+    """Four colours (a GIF palette holds them exactly): decoded frames equal the uint8 input; the
+    in-memory bytes are the file's bytes."""
+    import imageio.v2 as imageio
+
+    from l3d_app.runtime.media import gif_bytes
+    palette = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 1.0]])
+    frames = palette[torch.arange(2 * 6 * 5).reshape(2, 6, 5) % 4]
+    frames[1] = frames[1].flip(0)
+    data = gif_bytes(frames, fps=10)
+    assert save_gif(tmp_path / "b.gif", frames, fps=10).read_bytes() == data
+    back = np.stack(imageio.mimread(data, format="GIF"))[..., :3]
+    assert np.array_equal(back, to_uint8(frames))
+
+
 def _events(log_dir):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 

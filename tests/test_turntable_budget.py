@@ -5,6 +5,7 @@ import time
 from types import SimpleNamespace
 
 import pytest
+import torch
 from omegaconf import OmegaConf
 
 from l3d_app.tasks import field_common
@@ -35,17 +36,26 @@ class _Log:
         self.notes.append((tag, value))
 
 
-def _run(monkeypatch, tmp_path, elapsed, budget=590.0, asked=36):
-    """Two gifs whose frames cost 0.125 s each on a fake clock: one probe frame of both = 0.25 s."""
+def _run(monkeypatch, tmp_path, elapsed, budget=590.0, asked=36, encode=0.0):
+    """Two gifs whose frames cost 0.125 s each to render and ``encode`` s each to GIF-encode on a fake
+    clock: one probe frame of both = 0.25 s + 2 x ``encode``."""
     clock = {"t": 0.0}
     monkeypatch.setattr(time, "perf_counter", lambda: clock["t"])
     monkeypatch.setattr(field_common, "turntable_orbit", lambda cfg, data, n, device: SimpleNamespace(n=n))
     written = []
     import l3d_app.render.turntable as turntable
+    import l3d_app.runtime.media as media
     monkeypatch.setattr(turntable, "write_turntable", lambda path, fn, cams, fps: written.append((path.name, cams.n)))
+    real_gif_bytes = media.gif_bytes
+
+    def timed_gif_bytes(frames, fps):
+        clock["t"] += encode * len(frames)
+        return real_gif_bytes(frames, fps)
+    monkeypatch.setattr(media, "gif_bytes", timed_gif_bytes)
 
     def frames_fn(cams):
         clock["t"] += 0.125 * cams.n
+        return torch.full((cams.n, 4, 4, 3), 0.5)
 
     ctx = SimpleNamespace(stopwatch=SimpleNamespace(elapsed=elapsed), logger=_Log(), device="cpu",
                           path=lambda name: tmp_path / name)
@@ -64,6 +74,14 @@ def test_the_probe_frame_prices_the_turntables(monkeypatch, tmp_path):
     assert frames == 0 and written == [] and "no gif" in notes[0][1]
     frames, written, notes = _run(monkeypatch, tmp_path, elapsed=10_000.0, budget=0)   # no budget: no probe
     assert frames == 36 and written == [("render.gif", 36), ("geometry.gif", 36)] and not notes
+
+
+def test_the_probe_prices_the_gif_encoding_too(monkeypatch, tmp_path):
+    """0.125 s to render + 0.025 s to encode a frame of each of two gifs: 0.3 s a frame; 5 s left: 16
+    frames (the rendering alone would say 20, and the gifs would run 1 s past the budget)."""
+    frames, written, notes = _run(monkeypatch, tmp_path, elapsed=585.0, encode=0.025)
+    assert frames == 16 and written == [("render.gif", 16), ("geometry.gif", 16)]
+    assert "16 of 36" in notes[0][1] and "0.30 s per frame" in notes[0][1]
 
 
 def test_the_loop_reserve_holds_the_test_views_only():

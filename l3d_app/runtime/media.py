@@ -23,11 +23,17 @@ def to_uint8(images: Frames) -> np.ndarray:
     return (np.clip(images, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
+def gif_bytes(frames: Frames, fps: float = 15.0) -> bytes:
+    """(N, H, W, 3) float frames in [0, 1] -> the bytes of a looping GIF at ``fps`` frames/s (encoded in
+    memory: :func:`save_gif` writes them; a time budget prices the encoding of one frame with it)."""
+    return imageio.mimwrite("<bytes>", list(to_uint8(frames)), format="GIF", duration=1000.0 / float(fps), loop=0)
+
+
 def save_gif(path: os.PathLike, frames: Frames, fps: float = 15.0) -> Path:
     """Save (N, H, W, 3) float frames in [0, 1] as a looping GIF at ``fps`` frames/s."""
-    frames = to_uint8(frames)
+    data = gif_bytes(frames, fps)
     with atomic_path(path) as tmp:
-        imageio.mimsave(tmp, list(frames), format="GIF", duration=1000.0 / float(fps), loop=0)
+        tmp.write_bytes(data)
     return Path(path)
 
 
