@@ -64,24 +64,58 @@ def _run(monkeypatch, tmp_path, elapsed, budget=590.0, asked=36, encode=0.0):
     return frames, written, ctx.logger.notes
 
 
-def test_the_probe_frame_prices_the_turntables(monkeypatch, tmp_path):
-    frames, written, notes = _run(monkeypatch, tmp_path, elapsed=585.0)          # 5 s left at 0.25 s: 20
-    assert frames == 20 and written == [("render.gif", 20), ("geometry.gif", 20)]
-    assert notes and notes[0][0] == "gifs" and "20 of 36" in notes[0][1] and "0.25 s per frame" in notes[0][1]
+def test_the_probe_frames_price_the_turntables(monkeypatch, tmp_path):
+    """36 asked: 4 probe frames (0.25 s each for both gifs, 1 s), reused; 5 s left: 4 + 20 = 24."""
+    frames, written, notes = _run(monkeypatch, tmp_path, elapsed=585.0)
+    assert frames == 24 and written == [("render.gif", 24), ("geometry.gif", 24)]
+    assert notes and notes[0][0] == "gifs" and "24 of 36" in notes[0][1] and "0.25 s per frame" in notes[0][1]
     frames, written, notes = _run(monkeypatch, tmp_path, elapsed=100.0)          # plenty: all, no note
     assert frames == 36 and written == [("render.gif", 36), ("geometry.gif", 36)] and not notes
-    frames, written, notes = _run(monkeypatch, tmp_path, elapsed=589.0)          # 1 s: 4 frames < 8: none
+    frames, written, notes = _run(monkeypatch, tmp_path, elapsed=589.0)          # 1 s: 4 + 4 = 8, kept
+    assert frames == 8 and "8 of 36" in notes[0][1]
+    frames, written, notes = _run(monkeypatch, tmp_path, elapsed=589.5)          # 0.5 s: 4 + 2 -> 4 < 8: none
     assert frames == 0 and written == [] and "no gif" in notes[0][1]
     frames, written, notes = _run(monkeypatch, tmp_path, elapsed=10_000.0, budget=0)   # no budget: no probe
     assert frames == 36 and written == [("render.gif", 36), ("geometry.gif", 36)] and not notes
+    frames, written, notes = _run(monkeypatch, tmp_path, elapsed=585.0, asked=10)   # gcd(10, 4) = 2 probes
+    assert frames == 10 and not notes
 
 
 def test_the_probe_prices_the_gif_encoding_too(monkeypatch, tmp_path):
-    """0.125 s to render + 0.025 s to encode a frame of each of two gifs: 0.3 s a frame; 5 s left: 16
-    frames (the rendering alone would say 20, and the gifs would run 1 s past the budget)."""
-    frames, written, notes = _run(monkeypatch, tmp_path, elapsed=585.0, encode=0.025)
-    assert frames == 16 and written == [("render.gif", 16), ("geometry.gif", 16)]
-    assert "16 of 36" in notes[0][1] and "0.30 s per frame" in notes[0][1]
+    """0.125 s to render + 0.025 s to encode a frame of each of two gifs: 0.3 s a frame; 5.1 s left less
+    the probe's 0.2 s of encoding (paid again in the gifs): 4 + 16 = 20 (the rendering alone: 24, and
+    the gifs would run past the budget)."""
+    frames, written, notes = _run(monkeypatch, tmp_path, elapsed=584.9, encode=0.025)
+    assert frames == 20 and written == [("render.gif", 20), ("geometry.gif", 20)]
+    assert "20 of 36" in notes[0][1] and "0.30 s per frame" in notes[0][1]
+
+
+@pytest.mark.parametrize("n,p", [(36, 4), (8, 4), (4, 4), (10, 2), (9, 1)])
+def test_the_probe_frames_are_reused_where_the_orbit_holds_them(n, p):
+    """An orbit of n frames with p probe frames rendered first: the same frames as rendering all n
+    (each frame a function of its camera), and only n - p of them rendered again."""
+    from l3d_app.render.turntable import orbit_cameras
+    from l3d_app.tasks.field_common import reuse_probe_frames
+    calls = []
+
+    def frames_fn(cams):
+        calls.append(len(cams))
+        return torch.cat([cams.R.reshape(-1, 9), cams.t], 1)[:, None, None, :].expand(-1, 2, 3, -1).clone()
+
+    orbit = lambda k: orbit_cameras(k, 4.0, 30.0, 40.0, 8, up=[0.0, 0.0, 1.0])  # noqa: E731
+    probed = frames_fn(orbit(p))
+    calls.clear()
+    got = reuse_probe_frames(frames_fn, probed)(orbit(n))
+    assert torch.equal(got, frames_fn(orbit(n)))
+    assert calls[0] == n - p or (n == p and len(calls) == 1)
+
+
+def test_an_orbit_without_the_probe_azimuths_is_refused():
+    from l3d_app.render.turntable import orbit_cameras
+    from l3d_app.tasks.field_common import reuse_probe_frames
+    fn = reuse_probe_frames(lambda c: torch.zeros(len(c), 1, 1, 3), torch.zeros(4, 1, 1, 3))
+    with pytest.raises(ValueError, match="does not hold 4"):
+        fn(orbit_cameras(10, 4.0, 30.0, 40.0, 8))
 
 
 def test_the_loop_reserve_holds_the_test_views_only():
