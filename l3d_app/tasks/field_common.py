@@ -103,8 +103,8 @@ def write_turntables(cfg, ctx, data, gifs: Dict[str, Callable[[Cameras], torch.T
     """Write each ``gifs`` entry (file name -> ``frames_fn(cameras) -> (N, H, W, 3)``) as a turntable of
     ``cfg.gif_frames`` frames. With ``cfg.time_budget`` > 0 the frames are priced first: p = gcd(frames, 4)
     evenly spread probe frames of each gif (azimuths 0, 90, 180, 270 degrees for a multiple of 4: a
-    frame's cost varies along an orbit: frame 0 of the held-out ``around`` scene's colour turntable
-    cost 13% less than the orbit's mean) are rendered and
+    frame's cost varies along an orbit and between calls: frame 0 alone priced the held-out ``around``
+    run's two gifs at 1.10 s a frame where they cost 1.25) are rendered and
     GIF-encoded in memory (encoding is part of a frame's cost), timed; then only the frames that fit the
     time left are written (:func:`turntable_frames_that_fit`, a multiple of p, so every orbit holds the
     probe's azimuths and reuses its frames; a TensorBoard note ``gifs`` says when fewer). Rendered
