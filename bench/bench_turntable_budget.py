@@ -68,12 +68,13 @@ def main() -> None:
             print(f"{kind}: {len(costs)} orbit frames alone: frame 0 {costs[0]:.3f} s, mean {c.mean():.3f} s, "
                   f"max {c.max():.3f} s (mean / frame 0 = {c.mean() / costs[0]:.3f})")
         notes = []
-        ctx = SimpleNamespace(stopwatch=_Stopwatch(budget - args.left), device="cpu",
-                              path=lambda name: Path(tempfile.mkdtemp()) / name,
-                              logger=SimpleNamespace(text=lambda tag, value: notes.append(value)))
-        t0 = time.perf_counter()
-        written = write_turntables(cfg, ctx, data, {"render.gif": frames_fn})
-        took = time.perf_counter() - t0
+        with tempfile.TemporaryDirectory() as out:       # the gif is written, then thrown away
+            ctx = SimpleNamespace(stopwatch=_Stopwatch(budget - args.left), device="cpu",
+                                  path=lambda name: Path(out) / name,
+                                  logger=SimpleNamespace(text=lambda tag, value: notes.append(value)))
+            t0 = time.perf_counter()
+            written = write_turntables(cfg, ctx, data, {"render.gif": frames_fn})
+            took = time.perf_counter() - t0
     print(f"{kind}: {args.left:g} s left: {written} of {int(cfg.gif_frames)} frames written in {took:.2f} s "
           f"({'within' if took <= args.left else 'OVER'} the time left){'; ' + notes[0] if notes else ''}")
 
