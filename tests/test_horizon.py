@@ -11,7 +11,7 @@ import torch
 
 from l3d_app.runtime import training
 from l3d_app.runtime.context import RunContext
-from l3d_app.runtime.horizon import Horizon
+from l3d_app.runtime.horizon import Horizon, scheduled_event
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.lr_schedules import exponential, on_horizon, step_decay, warmup_cosine
 from l3d_app.runtime.optim import build_optimizer
@@ -148,3 +148,38 @@ def test_a_checkpoint_of_the_older_torch_schedulers_resumes_into_the_factor_sche
     assert scheds[0].last_epoch == 12 and opt2.param_groups[0]["lr"] == pytest.approx(0.1 * 0.33)
     opt2.step(), scheds[0].step()
     assert opt2.param_groups[0]["lr"] == pytest.approx(0.1 * 0.33)
+
+
+@pytest.mark.parametrize("every,first,last", [(1, 1, math.inf), (4, 1, math.inf), (7, 5, 30), (10, 10, 30)])
+def test_scheduled_event_on_integer_steps_is_the_modulo_rule(every, first, last):
+    for done in range(1, 61):
+        assert scheduled_event(done - 1, done, every, first, last) == (first <= done <= last and done % every == 0)
+
+
+def test_advance_covers_the_nominal_steps_once_and_never_moves_back():
+    h = Horizon(100)
+    assert [h.advance(d) for d in (1, 2, 3)] == [(0.0, 1.0), (1.0, 2.0), (2.0, 3.0)]   # no prediction: by step
+    h.update(done=3, predicted=50.0)                   # half the steps fit: each covers two nominal ones
+    assert h.advance(4) == pytest.approx((3.0, 8.0)) and h.advance(5) == pytest.approx((8.0, 10.0))
+    h.update(done=5, predicted=100.0)                  # the prediction rises again: nominal(6) = 6 < 10
+    assert h.advance(6) == (10.0, 10.0)                # nothing covered twice, nothing moves back
+    g = Horizon(1)
+    g.load_state_dict(h.state_dict())
+    assert (g.iters, g.steps, g.reached) == (100, 100.0, 10.0)
+    old = Horizon(100)                                  # a checkpoint written before advance() existed
+    old.load_state_dict({"iters": 100, "steps": 50.0})
+    assert old.advance(31) == pytest.approx((60.0, 62.0))  # from nominal(30), not from 0: no burst of events
+
+
+def test_events_keep_their_count_when_the_schedule_is_compressed():
+    """Densify every 10 nominal steps within [10, 60] of a 100-step schedule: 6 events by step,
+    and the same 6 when only 37 steps fit (each at the first step whose nominal interval holds it)."""
+    def events(fit):
+        h, at = Horizon(100), []
+        for done in range(1, fit + 1):
+            h.update(done - 1, fit)
+            if scheduled_event(*h.advance(done), 10, first=10, last=60):
+                at.append(done)
+        return at
+    assert events(100) == [10, 20, 30, 40, 50, 60]
+    assert events(37) == [math.ceil(k * 37 / 100) for k in (10, 20, 30, 40, 50, 60)] == [4, 8, 12, 15, 19, 23]

@@ -194,3 +194,36 @@ def test_course_keeps_the_set_fixed():
     for k in PARAM_NAMES:
         assert torch.equal(getattr(m, k), before[k]), k
     assert m.log_scales.shape == (20, 1) and m.log_scales3.shape == (20, 3)
+
+
+def test_default_events_follow_a_compressed_schedule():
+    """info["schedule"] two nominal steps per step: densify (every 4 from 4, until 8) at steps 2
+    and 4, the opacity reset (every 6) at step 3, nothing after step 4 (nominal 8 = until)."""
+    m, opt = _model_and_adam()
+    s = DefaultStrategy(start=4, until=8, every=4, grad_threshold=10.0, opacity_reset_every=6, reset_value=0.01,
+                        max_world_scale=0.0)
+    s.initialize(m, opt, scene_extent=1.0)
+    m.opacity_logits.data[:] = 3.0
+    seen = []
+    for step in range(6):
+        info = {**_info(torch.ones(20), 20), "schedule": (2.0 * step, 2.0 * step + 2.0)}
+        logs = s.step_post_backward(m, opt, step, info)
+        seen.append(("densify" if logs else "") + ("reset" if float(m.opacity_logits.max()) < 0 else ""))
+        m.opacity_logits.data[:] = 3.0
+    assert seen == ["", "densify", "reset", "densify", "", ""]
+
+
+def test_mcmc_events_follow_a_compressed_schedule():
+    """Grow (every 2 in (start 1, until 9)) at nominal 2, 4, 6, 8: steps 1, 2, 3, 4 of a schedule
+    covering two nominal steps per step; by step, at steps 2, 4, 6, 8 (0-based 1, 3, 5, 7)."""
+    def grown_at(per_step):
+        m, opt = _model_and_adam(n=10)
+        s = MCMCStrategy(cap_max=10 ** 6, start=1, until=9, every=2, grow_rate=0.1, noise_lr=0.0)
+        s.initialize(m, opt, 1.0)
+        at = []
+        for step in range(8):
+            info = {"schedule": (per_step * step, per_step * (step + 1))} if per_step != 1 else {}
+            if s.step_post_backward(m, opt, step, info, torch.Generator().manual_seed(0)):
+                at.append(step)
+        return at
+    assert grown_at(1) == [1, 3, 5, 7] and grown_at(2) == [0, 1, 2, 3]

@@ -10,6 +10,12 @@ The training task calls, per run and per step::
 
 ``info`` is the render's bookkeeping: ``means2d`` (B, N, 2) pixels with its gradient after
 backward, ``radii`` (B, N) pixels (0 = culled), ``width``, ``height`` (pixels).
+``info["schedule"]`` (optional) is ``(previous, now)``, the step counts on the task's nominal
+schedule that this step takes the run from and to (floats; :meth:`~l3d_app.runtime.horizon.Horizon.advance`:
+under a time budget that stops the run early, the whole schedule is compressed into the
+steps that fit); absent, ``(step, step + 1)``. A strategy reads its own schedule (start,
+until, every) through :meth:`Strategy.schedule` and
+:func:`~l3d_app.runtime.horizon.scheduled_event`, so that it follows the task's budget.
 ``generator`` is the run's CPU generator (draw with :mod:`l3d_app.runtime.random`).
 ``step`` is 0-based (the step just taken). A strategy may resize the model's parameters;
 it must then swap the new ``Parameter`` objects into the optimiser
@@ -19,7 +25,7 @@ logged by the task under ``strategy/``.
 
 from __future__ import annotations
 
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Tuple
 
 import torch
 
@@ -45,6 +51,13 @@ class Strategy:
                            generator: Optional[torch.Generator] = None) -> Dict[str, float]:
         """After the optimiser step of ``step``; returns figures to log (may be empty)."""
         return {}
+
+    @staticmethod
+    def schedule(step: int, info: Dict[str, Any]) -> Tuple[float, float]:
+        """``(previous, now)`` step counts of this step on the nominal schedule (``info["schedule"]``,
+        else ``(step, step + 1)``: 0-based ``step`` just taken)."""
+        previous, now = info.get("schedule", (step, step + 1))
+        return float(previous), float(now)
 
     def state_dict(self) -> Dict[str, Any]:
         return {}

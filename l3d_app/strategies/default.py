@@ -21,6 +21,7 @@ import torch
 from l3d_app.models.gaussians import PARAM_NAMES
 from l3d_app.registry import STRATEGIES
 from l3d_app.render.gaussians import quaternion_to_rotation
+from l3d_app.runtime.horizon import scheduled_event
 from l3d_app.runtime.random import randn
 from l3d_app.strategies.base import Strategy
 from l3d_app.strategies.ops import replace_rows, zero_moments
@@ -42,8 +43,12 @@ class DefaultStrategy(Strategy):
         max_world_scale: prune splats larger than this fraction of the extent (0 = off).
         opacity_reset_every: steps between opacity resets (0 = never); reset_value: the clamp.
         reset_min_steps_left: a reset is skipped when fewer steps than this are left in the run
-            (``info["steps_left"]``, from ``iters`` and the time budget; absent: never skipped): a
-            reset costs 15-20 dB that take about 100 steps to recover.
+            (``info["steps_left"]``, on the nominal schedule; absent: never skipped): a reset costs
+            15-20 dB that take about 100 steps to recover.
+
+    The steps above are those of the task's nominal schedule (``info["schedule"]``,
+    :mod:`l3d_app.strategies.base`): under a time budget that stops the run early, the
+    densification phase, the resets and the refinement after them keep their shares of the run.
         max_gaussians: cap on the count.
     """
 
@@ -84,16 +89,16 @@ class DefaultStrategy(Strategy):
     # -- hooks ---------------------------------------------------------------------------------
     def step_post_backward(self, model, optimizer, step: int, info: Dict[str, Any],
                            generator: Optional[torch.Generator] = None) -> Dict[str, float]:
-        done = step + 1
+        previous, done = self.schedule(step, info)      # (step, step + 1) unless a time budget compresses it
         logs: Dict[str, float] = {}
         grad = info["means2d"].grad
-        if done > self.until or grad is None:
+        if previous >= self.until or grad is None:
             return logs
         self.accumulate(grad, info["radii"].detach(), int(info["width"]), int(info["height"]))
-        if done >= self.start and done % self.every == 0:
+        if scheduled_event(previous, done, self.every, first=self.start, last=self.until):
             r = self.densify_and_prune(model, optimizer, generator, prune_screen=done > self.opacity_reset_every)
             logs = {k: float(r[k]) for k in ("n", "cloned", "split", "pruned")}
-        if (self.opacity_reset_every > 0 and done % self.opacity_reset_every == 0
+        if (self.opacity_reset_every > 0 and scheduled_event(previous, done, self.opacity_reset_every, last=self.until)
                 and info.get("steps_left", self.reset_min_steps_left) >= self.reset_min_steps_left):
             self.reset_opacity(model, optimizer)
         return logs

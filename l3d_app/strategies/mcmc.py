@@ -25,6 +25,7 @@ import torch
 from l3d_app.models.gaussians import PARAM_NAMES
 from l3d_app.registry import STRATEGIES
 from l3d_app.render.gaussians import quaternion_to_rotation
+from l3d_app.runtime.horizon import scheduled_event
 from l3d_app.runtime.random import rand, randn
 from l3d_app.strategies.base import Strategy
 from l3d_app.strategies.ops import append_rows, zero_moments
@@ -86,9 +87,9 @@ class MCMCStrategy(Strategy):
 
     def step_post_backward(self, model, optimizer, step: int, info: Dict[str, Any],
                            generator: Optional[torch.Generator] = None) -> Dict[str, float]:
-        done = step + 1
+        previous, done = self.schedule(step, info)     # (step, step + 1) unless a time budget compresses it
         logs: Dict[str, float] = {}
-        if self.start < done < self.until and done % self.every == 0:
+        if scheduled_event(previous, done, self.every, first=self.start + 1, last=self.until - 1):
             logs["relocated"] = float(self.relocate(model, optimizer, generator))
             logs["added"] = float(self.grow(model, optimizer, generator))
             logs["n"] = float(model.num)

@@ -9,6 +9,13 @@ regulariser) with Adam (per-parameter rates as in 3DGS; the means' rate is scale
 scene extent and decays exponentially, a LambdaLR the shared loop steps). The SH degree
 rises by one every ``sh_every`` steps up to ``sh_degree``. Densification is the
 ``strategy=`` group (:mod:`l3d_app.strategies`), checkpointed with the model.
+Every step schedule (the means' LR decay, the SH degree, the strategy's densification,
+resets and ``until``) is read at the nominal step of a
+:class:`~l3d_app.runtime.horizon.Horizon`: when ``time_budget`` stops the run before
+``iters``, the whole schedule is compressed into the steps that fit (in proportion to the
+training time: the loop's prediction uses the mean seconds per step so far), so a slower
+machine still ends with the refinement after the last densification; without a binding
+budget, the schedule is read by step.
 Validation views are evaluated every ``eval_every`` steps (TensorBoard ``val/``, with a
 prediction | truth | error | depth picture); the test views once at the end.
 Outputs: ``test_views.gif``, ``progress.gif`` (a validation view over training),
@@ -29,6 +36,8 @@ from l3d_app.registry import DATASETS, STRATEGIES, TASKS
 from l3d_app.render.gaussians import rasterize_gaussians
 from l3d_app.render.gaussians_coverage import shrink_to_coverage
 from l3d_app.render.gaussians_panels import colorize_depth, depth_range, error_map, side_by_side
+from l3d_app.runtime.horizon import Horizon
+from l3d_app.runtime.lr_schedules import exponential, on_horizon
 from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
@@ -85,17 +94,18 @@ def gs_train(cfg, ctx) -> dict:
     # bench/profile_gaussians_step.py)
     opt = torch.optim.Adam([{"params": [p], "lr": r, "name": n} for n, p, r in groups], eps=float(cfg.adam_eps),
                            foreach=True)
-    decay, steps = float(lr.means_final) / float(lr.means), int(cfg.lr_decay_steps)
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, [lambda s: decay ** min(1.0, s / steps)] + [lambda s: 1.0] * (len(groups) - 1))
+    horizon = Horizon(int(cfg.iters))     # where a time budget will stop the run: every schedule ends there
+    decay = exponential(float(lr.means_final) / float(lr.means), int(cfg.lr_decay_steps))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, [on_horizon(decay, horizon)] + [lambda s: 1.0] * (len(groups) - 1))
     strategy = STRATEGIES.build(cfg.strategy)
     strategy.initialize(model, opt, extent)
-    trainable = Trainable({"gaussians": model, "background": background}, opt, extra={"strategy": strategy}, schedulers=[sched])
+    trainable = Trainable({"gaussians": model, "background": background}, opt,
+                          extra={"strategy": strategy, "horizon": horizon}, schedulers=[sched])
     H, W = data.image_size
     tr, lam, info, step_times = data.train, float(cfg.ssim_lambda), {"width": W, "height": H}, []
 
     def degree(step: int) -> int:
-        return min(int(cfg.sh_degree), step // int(cfg.sh_every))
+        return min(int(cfg.sh_degree), int(horizon.nominal(step)) // int(cfg.sh_every))
 
     def render(i: int, deg: int):
         return rasterize_gaussians(model.means, model.log_scales3, model.quats, model.opacity_logits, model.sh,
@@ -114,18 +124,9 @@ def gs_train(cfg, ctx) -> dict:
         strategy.step_pre_backward(model, opt, step, info)
         return {"loss": loss, "l1": l1.detach(), "n_gaussians": torch.tensor(float(model.num))}
 
-    def steps_left(step: int) -> int:
-        """Steps after this one: to ``iters``, or fewer where the time budget (at the recent wall
-        seconds per step) ends the run sooner. The strategy skips an opacity reset near the end."""
-        left = int(cfg.iters) - (step + 1)
-        if float(cfg.time_budget) > 0 and step_times:
-            recent = [t for t, _ in step_times[-50:]]
-            seconds = float(cfg.time_budget) - float(cfg.reserve) - ctx.stopwatch.elapsed
-            left = min(left, int(seconds * len(recent) / max(sum(recent), 1e-9)))
-        return left
-
     def after_step(step: int) -> None:
-        info["steps_left"] = steps_left(step)
+        info["schedule"] = horizon.advance(step + 1)      # the strategy's steps on the same schedule
+        info["steps_left"] = int(cfg.iters) - info["schedule"][1]
         logs = strategy.step_post_backward(model, opt, step, info, ctx.generator)
         if logs:
             ctx.logger.log_scalars({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
@@ -151,7 +152,7 @@ def gs_train(cfg, ctx) -> dict:
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
                        checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="gs_train",
                        after_step=after_step, log_every=int(cfg.log_every), time_budget=float(cfg.time_budget),
-                       reserve=float(cfg.reserve), reserve_evals=len(data.test) / len(data.val))
+                       reserve=float(cfg.reserve), reserve_evals=len(data.test) / len(data.val), horizon=horizon)
     with torch.no_grad():
         pred, target, panel, test = evaluate(data.test, degree(result.step))
     test = {k: round(v, 4) for k, v in test.items()}
