@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from l3d_app.app import RunInterrupted, run_task
+from l3d_app.errors import UserError
 from l3d_app.geometry.gaussian_ply import load_gaussian_ply, save_gaussian_ply
 from l3d_app.models.gaussians import PARAM_NAMES, GaussianModel, init_from_points
 
@@ -133,19 +134,20 @@ def test_gs_train_skips_an_opacity_reset_too_close_to_the_end(compose, tmp_path,
     assert (mean_opacity < 0.03) if expect_reset else (mean_opacity > 0.06), mean_opacity
 
 
-@pytest.mark.parametrize("fit", [None, 13])
-def test_gs_train_schedules_follow_the_steps_the_budget_lets_it_run(compose, tmp_path, monkeypatch, fit):
-    """A time budget the loop predicts will stop the 26-step run at step 13 (the prediction faked,
-    the run cut at 13): the means' LR has decayed all the way and the opacity reset due at nominal
-    step 20 took place (at step 10); by step (no binding budget) the LR is half-way (decay^0.5)
-    and the reset is still ahead."""
+@pytest.mark.parametrize("schedule,fit,compressed", [("budget", None, False), ("budget", 13, True), ("steps", 13, False)])
+def test_gs_train_schedules_follow_the_steps_the_budget_lets_it_run(compose, tmp_path, monkeypatch, schedule, fit,
+                                                                    compressed):
+    """schedule=budget with a time budget the loop predicts will stop the 26-step run at step 13
+    (the prediction faked, the run cut at 13): the means' LR has decayed all the way and the
+    opacity reset due at nominal step 20 took place (at step 10). Read by step (no binding
+    budget, or schedule=steps) the LR is half-way (decay^0.5) and the reset is still ahead."""
     from l3d_app.runtime import training
     torch.set_num_threads(1)
     if fit is not None:
         monkeypatch.setattr(training._LoopClock, "predicted_steps", lambda self, *a: float(fit))
     monkeypatch.setenv("L3D_STOP_AT_STEP", "13")
-    cfg = compose("task=gs_train", "iters=26", "lr_decay_steps=26", "eval_every=26", "data.image_size=24",
-                  "data.n_train=8", "data.n_test=1", "n_init=600", "strategy.start=1000",
+    cfg = compose("task=gs_train", f"schedule={schedule}", "iters=26", "lr_decay_steps=26", "eval_every=26",
+                  "data.image_size=24", "data.n_train=8", "data.n_test=1", "n_init=600", "strategy.start=1000",
                   "strategy.opacity_reset_every=20", "strategy.reset_min_steps_left=0", "time_budget=100000",
                   "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
     with pytest.raises(RunInterrupted):
@@ -154,9 +156,15 @@ def test_gs_train_schedules_follow_the_steps_the_budget_lets_it_run(compose, tmp
     means_lr = next(g["lr"] for g in state["optimizer"]["param_groups"] if g["name"] == "means")
     decay = float(cfg.lr.means_final) / float(cfg.lr.means)
     base = state["schedulers"][0]["base_lrs"][0]
-    assert means_lr / base == pytest.approx(decay ** (1.0 if fit else 0.5), rel=1e-6)
+    assert means_lr / base == pytest.approx(decay ** (1.0 if compressed else 0.5), rel=1e-6)
     mean_opacity = float(torch.sigmoid(state["modules"]["gaussians"]["opacity_logits"]).mean())
-    assert (mean_opacity < 0.03) if fit else (mean_opacity > 0.06), mean_opacity
+    assert (mean_opacity < 0.03) if compressed else (mean_opacity > 0.06), mean_opacity
+
+
+def test_gs_train_rejects_an_unknown_schedule(compose, tmp_path):
+    with pytest.raises(UserError, match="schedule must be steps or budget"):
+        run_task(compose("task=gs_train", "schedule=epochs", "tensorboard=false",
+                         f"data.cache_dir={tmp_path / 'cache'}"), out_dir=tmp_path / "run")
 
 
 def test_gs_train_resume_is_bitwise_identical(compose, tmp_path, monkeypatch):
