@@ -149,9 +149,16 @@ def test_gs_train_schedules_follow_the_steps_the_budget_lets_it_run(compose, tmp
     cfg = compose("task=gs_train", f"schedule={schedule}", "iters=26", "lr_decay_steps=26", "eval_every=26",
                   "data.image_size=24", "data.n_train=8", "data.n_test=1", "n_init=600", "strategy.start=1000",
                   "strategy.opacity_reset_every=20", "strategy.reset_min_steps_left=0", "time_budget=100000",
-                  "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
+                  f"data.cache_dir={tmp_path / 'cache'}")
     with pytest.raises(RunInterrupted):
         run_task(cfg, out_dir=tmp_path / "run")
+    tags = _events(tmp_path / "run").Tags()["scalars"]
+    if schedule == "budget":          # TensorBoard shows how far the schedule has come (logged every 10 steps)
+        nominal = {e.step: e.value for e in _events(tmp_path / "run").Scalars("strategy/nominal_step")}
+        # the first step runs before the loop has any prediction: nominal 1, then 2 per step
+        assert nominal == pytest.approx({1: 1.0, 11: 22.0} if compressed else {1: 1.0, 11: 11.0})
+    else:
+        assert "strategy/nominal_step" not in tags
     state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["trainable"]
     means_lr = next(g["lr"] for g in state["optimizer"]["param_groups"] if g["name"] == "means")
     decay = float(cfg.lr.means_final) / float(cfg.lr.means)

@@ -147,6 +147,8 @@ def gs_train(cfg, ctx) -> dict:
         info["schedule"] = horizon.advance(step + 1)      # the strategy's steps on the same schedule
         info["steps_left"] = steps_left(step)
         logs = strategy.step_post_backward(model, opt, step, info, ctx.generator)
+        if on_budget and step % int(cfg.log_every) == 0:   # how far the compressed schedule has come
+            logs = {**logs, "nominal_step": info["schedule"][1], "predicted_steps": horizon.steps}
         if logs:
             ctx.logger.log_scalars({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
         step_times.append((time.perf_counter() - info["t0"], time.process_time() - info["c0"]))
