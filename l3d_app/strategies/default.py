@@ -45,11 +45,12 @@ class DefaultStrategy(Strategy):
         reset_min_steps_left: a reset is skipped when fewer steps than this are left in the run
             (``info["steps_left"]``, on the nominal schedule; absent: never skipped): a reset costs
             15-20 dB that take about 100 steps to recover.
+        max_gaussians: cap on the count.
 
     The steps above are those of the task's nominal schedule (``info["schedule"]``,
-    :mod:`l3d_app.strategies.base`): under a time budget that stops the run early, the
-    densification phase, the resets and the refinement after them keep their shares of the run.
-        max_gaussians: cap on the count.
+    :mod:`l3d_app.strategies.base`): by step by default; with gs_train's ``schedule=budget``
+    a time budget that stops the run early compresses it, so that the densification phase,
+    the resets and the refinement after them keep their shares of the run.
     """
 
     def __init__(self, start: int = 100, until: int = 2000, every: int = 100, grad_threshold: float = 2e-4,

@@ -78,6 +78,8 @@ def gs_train(cfg, ctx) -> dict:
     require_positive(cfg, "iters", "eval_every", "sh_every", "lr_decay_steps", "tile_size", "log_every")
     if cfg.get("sh_degree") not in (0, 1, 2, 3):      # checked now, not when the schedule reaches it mid-run
         raise UserError(f"sh_degree must be 0, 1, 2 or 3, got {cfg.get('sh_degree')!r}")
+    if cfg.get("schedule") not in ("steps", "budget"):
+        raise UserError(f"schedule must be steps or budget, got {cfg.get('schedule')!r}")
     raw = DATASETS.build(cfg.data)
     if len(raw.val) == 0:
         raise UserError(f"gs_train needs validation views and data '{cfg.data.name}' has none")
@@ -97,8 +99,6 @@ def gs_train(cfg, ctx) -> dict:
     # bench/profile_gaussians_step.py)
     opt = torch.optim.Adam([{"params": [p], "lr": r, "name": n} for n, p, r in groups], eps=float(cfg.adam_eps),
                            foreach=True)
-    if cfg.get("schedule") not in ("steps", "budget"):
-        raise UserError(f"schedule must be steps or budget, got {cfg.get('schedule')!r}")
     on_budget = cfg.schedule == "budget"
     horizon = Horizon(int(cfg.iters))     # schedule=budget: the loop predicts the budget's stop, every schedule ends there
     decay = exponential(float(lr.means_final) / float(lr.means), int(cfg.lr_decay_steps))
