@@ -6,6 +6,8 @@
 
 from __future__ import annotations
 
+import zipfile
+
 import numpy as np
 import torch
 
@@ -24,7 +26,11 @@ def bunny_points(path: str = None, key: str = "verts", stride: int = 2, center: 
     file = resolve_path(path)
     if not file.exists():
         raise UserError(f"bunny point cloud not found: {file}")
-    with np.load(file) as npz:
+    try:
+        npz = np.load(file)
+    except (OSError, EOFError, ValueError, zipfile.BadZipFile) as err:
+        raise UserError(f"{file} is not a readable .npz ({type(err).__name__}: {err})") from err
+    with npz:
         if key not in npz:
             raise UserError(f"{file} has no key '{key}' (keys: {', '.join(npz.files)})")
         pts = np.asarray(npz[key], dtype=np.float32)

@@ -70,6 +70,10 @@ class ColmapCamera:
         else:
             raise UserError(f"camera {self.id}: camera model {m} is not supported "
                             f"(supported: {', '.join(SUPPORTED)}; undistort with COLMAP's image_undistorter)")
+        if self.width < 1 or self.height < 1:
+            raise UserError(f"camera {self.id}: image size must be positive, got {self.width} x {self.height}")
+        if not (np.isfinite(p).all() and fx > 0 and fy > 0):
+            raise UserError(f"camera {self.id}: parameters must be finite with positive focal lengths, got {p}")
         return fx, fy, cx, cy, dist
 
 
@@ -147,7 +151,10 @@ def read_images_bin(path: Path, keep_points2d: bool = False):
         end = r.buf.find(b"\x00", r.pos)
         if end < 0:
             raise UserError(f"{path}: file is truncated (ends inside image {i}'s name)")
-        names.append(r.buf[r.pos:end].decode("utf-8"))
+        try:
+            names.append(r.buf[r.pos:end].decode("utf-8"))
+        except UnicodeDecodeError as err:
+            raise UserError(f"{path}: image {i}'s name is not UTF-8 text (a corrupt or foreign images.bin)") from err
         r.pos = end + 1
         n2d = int(r.read("<u8", 1, f"image {names[-1]}'s observation count")[0])
         obs = r.read([("x", "<f8"), ("y", "<f8"), ("id", "<i8")], n2d, f"image {names[-1]}'s observations")
@@ -162,6 +169,9 @@ def read_points3d_bin(path: Path):
     r = _Reader(path)
     n = int(r.read("<u8", 1, "the point count")[0])
     rec = np.dtype([("id", "<u8"), ("xyz", "<f8", 3), ("rgb", "u1", 3), ("err", "<f8"), ("len", "<u8")])
+    if n * rec.itemsize > len(r.buf) - r.pos:          # before allocating n offsets
+        raise UserError(f"{path}: file is truncated or not a points3D.bin ({n} points do not fit in "
+                        f"{len(r.buf)} bytes)")
     offsets = np.empty(n, dtype=np.int64)
     pos, buf = r.pos, r.buf
     unpack = np.frombuffer
@@ -189,6 +199,13 @@ def _floats(path: Path, line_no: int, tokens: List[str]) -> List[float]:
         raise UserError(f"{path}: line {line_no}: {err}") from err
 
 
+def _int(path: Path, line_no: int, token: str) -> int:
+    try:
+        return int(token)
+    except ValueError as err:
+        raise UserError(f"{path}: line {line_no}: {err}") from err
+
+
 def read_cameras_txt(path: Path) -> Dict[int, ColmapCamera]:
     cams = {}
     for k, ln in enumerate(_lines(path)):
@@ -201,7 +218,8 @@ def read_cameras_txt(path: Path) -> Dict[int, ColmapCamera]:
         if len(tok) != 4 + n:
             raise UserError(f"{path}: camera {tok[0]}: {tok[1]} needs {n} parameters, got {len(tok) - 4}")
         vals = _floats(path, k, tok[2:])
-        cams[int(tok[0])] = ColmapCamera(int(tok[0]), tok[1], int(vals[0]), int(vals[1]), np.array(vals[2:]))
+        cid = _int(path, k, tok[0])
+        cams[cid] = ColmapCamera(cid, tok[1], int(vals[0]), int(vals[1]), np.array(vals[2:]))
     return cams
 
 
@@ -216,9 +234,9 @@ def read_images_txt(path: Path, keep_points2d: bool = False):
             continue
         if len(tok) < 10:
             raise UserError(f"{path}: image line '{lines[i].strip()[:60]}' needs ID QW QX QY QZ TX TY TZ CAMERA_ID NAME")
-        ids.append(int(tok[0]))
+        ids.append(_int(path, i, tok[0]))
         qt.append(_floats(path, i, tok[1:8]))
-        cams.append(int(tok[8]))
+        cams.append(_int(path, i, tok[8]))
         names.append(" ".join(tok[9:]))
         if keep_points2d:
             obs = lines[i + 1].split() if i + 1 < len(lines) else []

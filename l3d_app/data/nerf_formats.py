@@ -126,7 +126,10 @@ def blender(root: str = None, background="white", downscale: int = 1,
             rgb, alpha = _to_float_rgb_alpha(_read_image(file), bg, int(downscale))
             imgs.append(rgb)
             alphas.append(alpha)
-            m = torch.tensor(fr["transform_matrix"], dtype=torch.float64)
+            try:
+                m = torch.tensor(fr["transform_matrix"], dtype=torch.float64)
+            except (ValueError, TypeError) as err:
+                raise UserError(f"{path}: frame {i} transform_matrix is not a 4x4 list of numbers: {err}") from err
             if m.shape not in ((4, 4), (3, 4)):
                 raise UserError(f"{path}: frame {i} transform_matrix must be 4x4, got {tuple(m.shape)}")
             c2w.append(m[:3])
@@ -137,7 +140,10 @@ def blender(root: str = None, background="white", downscale: int = 1,
         if len(sizes) != 1:
             raise UserError(f"{path}: images have different sizes {sorted(sizes)}")
         h, w = imgs[0].shape[:2]
-        focal = 0.5 * w / math.tan(0.5 * float(meta["camera_angle_x"]))
+        fov = float(meta["camera_angle_x"])
+        if not 0.0 < fov < math.pi:                    # also false for NaN
+            raise UserError(f"{path}: camera_angle_x must be a field of view in (0, pi) radians, got {fov}")
+        focal = 0.5 * w / math.tan(0.5 * fov)
         cams.append(from_opengl_c2w(c2w_all, focal, focal, w / 2.0, h / 2.0, w, h).to(dtype=torch.float32))
         images += imgs
         splits[split] = torch.arange(start, start + len(imgs))

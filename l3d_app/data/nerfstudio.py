@@ -77,6 +77,8 @@ def nerfstudio(root: str = None, transforms: str = "transforms.json", downscale:
         meta = json.loads(path.read_text())
     except json.JSONDecodeError as err:
         raise UserError(f"{path} is not valid JSON: {err}") from err
+    if not isinstance(meta, dict):
+        raise UserError(f"{path} must hold a JSON object (with 'frames'), got a {type(meta).__name__}")
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
         raise UserError(f"{path} lists no frames")
@@ -103,6 +105,8 @@ def nerfstudio(root: str = None, transforms: str = "transforms.json", downscale:
         d = [float(get(k, 0.0)) for k in DISTORTION]
         if not np.isfinite(vals + d).all() or vals[0] <= 0 or vals[1] <= 0:
             raise UserError(f"{path}: frame {names[i]}: intrinsics must be finite with positive focal lengths")
+        if int(vals[4]) < 1 or int(vals[5]) < 1:
+            raise UserError(f"{path}: frame {names[i]}: image size w x h must be positive, got {vals[4]:g} x {vals[5]:g}")
         intr.append(vals[:4])
         dists.append(d)
         sizes.append((int(vals[4]), int(vals[5])))

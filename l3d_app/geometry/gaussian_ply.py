@@ -70,14 +70,26 @@ def load_gaussian_ply(path: os.PathLike) -> Dict[str, torch.Tensor]:
         dtype = np.dtype([(name, types[t]) for t, name in props])
     except KeyError as err:
         raise UserError(f"{path}: unsupported property type {err}") from err
-    v = np.frombuffer(raw[end + len(b"end_header\n"):], dtype=dtype, count=n)
+    if n is None:
+        raise UserError(f"{path}: no 'element vertex' line in the header")
+    if n == 0:
+        raise UserError(f"{path} holds no Gaussians (element vertex 0)")
+    body = raw[end + len(b"end_header\n"):]
+    if len(body) < n * dtype.itemsize:
+        raise UserError(f"{path}: file is truncated ({len(body)} bytes for {n} Gaussians of {dtype.itemsize})")
+    v = np.frombuffer(body, dtype=dtype, count=n)
     need = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
             "rot_0", "rot_1", "rot_2", "rot_3"]
     missing = [k for k in need if k not in dtype.names]
     if missing:
         raise UserError(f"{path}: not a 3DGS PLY, missing {missing}")
     col = lambda *k: torch.from_numpy(np.stack([v[x].astype(np.float32) for x in k], -1))  # noqa: E731
+    bad = [k for k in need if not np.isfinite(v[k].astype(np.float64)).all()]
+    if bad:
+        raise UserError(f"{path}: non-finite values in {bad}")
     rest_names = sorted((k for k in dtype.names if re.fullmatch(r"f_rest_\d+", k)), key=lambda k: int(k[7:]))
+    if len(rest_names) not in (0, 9, 24, 45):        # SH degree 0, 1, 2, 3: 3 x (K - 1) coefficients
+        raise UserError(f"{path}: {len(rest_names)} f_rest properties; a 3DGS PLY has 0, 9, 24 or 45")
     per = len(rest_names) // 3
     rest = torch.zeros(n, 15, 3)
     if per:

@@ -34,6 +34,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+import pickle
 import signal
 import time
 from contextlib import contextmanager
@@ -43,6 +44,7 @@ from typing import Any, Callable, Dict, Iterator, List, Optional
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.precision import autocast
@@ -176,9 +178,21 @@ def save_checkpoint(path: Path, trainable: Trainable, step: int, generator: torc
     return True
 
 
+def read_checkpoint(path: Path) -> Dict[str, Any]:
+    """The dict of a ``checkpoint.pt`` written by :func:`save_checkpoint` (on the CPU); a file
+    that is not one (empty, truncated, another format, no ``trainable``) is a :class:`UserError`."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except (EOFError, RuntimeError, pickle.UnpicklingError, ValueError) as err:
+        raise UserError(f"{path} is not a readable checkpoint ({type(err).__name__}: {err})") from err
+    if not isinstance(state, dict) or "trainable" not in state:
+        raise UserError(f"{path} is not a checkpoint of this app (no 'trainable' state)")
+    return state
+
+
 def load_checkpoint(path: Path, trainable: Trainable, generator: torch.Generator) -> Dict[str, Any]:
     """Restore a checkpoint written by :func:`save_checkpoint`; returns its dict."""
-    state = torch.load(path, map_location="cpu", weights_only=False)
+    state = read_checkpoint(path)
     trainable.load_state_dict(state["trainable"])
     _set_rng_state(generator, state["rng"])
     return state

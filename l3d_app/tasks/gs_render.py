@@ -25,10 +25,12 @@ from l3d_app.render.gaussians import rasterize_gaussians
 from l3d_app.render.gaussians_panels import colorize_depth, side_by_side
 from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.paths import resolve_path
+from l3d_app.tasks.common import require_positive
 
 
 @TASKS.register("gs_render")
 def gs_render(cfg, ctx) -> dict:
+    require_positive(cfg, "num_frames", "image_size")
     if not cfg.get("ply"):
         raise UserError("gs_render needs a file: add ply=FILE (a 3DGS point_cloud.ply)")
     path = resolve_path(str(cfg.ply))

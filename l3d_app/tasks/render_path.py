@@ -37,6 +37,7 @@ from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.media import save_gif, to_uint8
 from l3d_app.runtime.paths import resolve_path
 from l3d_app.runtime.progress import progress
+from l3d_app.runtime.training import read_checkpoint
 
 Render = Callable[[Cameras], Dict[str, torch.Tensor]]
 PATHS = ("orbit", "spiral", "interp", "camera_path")
@@ -135,7 +136,7 @@ def load_run(run_dir, device, chunk: int):
     kind = str(conf.get("task_name"))
     if kind not in ADAPTERS:
         raise UserError(f"{cfg_file}: render_path renders runs of {', '.join(ADAPTERS)}, not {kind}")
-    state = torch.load(ckpt, map_location="cpu", weights_only=False)["trainable"]
+    state = read_checkpoint(ckpt)["trainable"]
     data = DATASETS.build(conf.data).to(device)
     with torch.no_grad():
         return ADAPTERS[kind](conf, state, data, device, chunk), data, kind
