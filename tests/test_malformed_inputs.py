@@ -128,7 +128,7 @@ def test_unreadable_checkpoint(tmp_path, content):
 
 def test_bunny_npz_that_is_not_one(tmp_path):
     (tmp_path / "empty.npz").write_bytes(b"")
-    with pytest.raises(UserError, match="is not a readable .npz"):
+    with pytest.raises(UserError, match="cannot read .*empty.npz: EOFError"):
         bunny_points(str(tmp_path / "empty.npz"))
 
 
@@ -137,3 +137,107 @@ def test_gs_render_refuses_non_positive_sizes_before_reading_the_ply(compose, tm
     with pytest.raises(UserError, match="must be a positive number"):
         run_task(compose("task=gs_render", f"ply={tmp_path / 'nothing.ply'}", knob, "tensorboard=false"),
                  out_dir=tmp_path / "run")
+
+
+# -- the second audit (262 cases over the other tasks and loaders) -------------------------------
+
+def test_array_files_numpy_cannot_read_are_one_user_error(tmp_path):
+    from l3d_app.data.array_files import load_array_file
+    for name, data in (("empty.npy", b""), ("garbage.npy", b"\x93NUMPY garbage"), ("empty.npz", b"")):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(UserError, match=f"cannot read .*{name}"):
+            load_array_file(tmp_path / name, allow_pickle=False)
+    np.save(tmp_path / "ok.npy", np.arange(3.0))
+    assert load_array_file(tmp_path / "ok.npy").tolist() == [0.0, 1.0, 2.0]
+
+
+def test_tiny_nerf_zero_size_and_non_finite_images(tmp_path):
+    from l3d_app.data.course_nerf import tiny_nerf
+    poses = np.repeat(np.eye(4)[None], 3, 0)
+    np.savez(tmp_path / "zero.npz", images=np.zeros((3, 0, 0, 3), np.float32), poses=poses, focal=np.float64(10))
+    with pytest.raises(UserError, match="images are 0 x 0 pixels"):
+        tiny_nerf(str(tmp_path / "zero.npz"))
+    img = np.zeros((3, 4, 4, 3), np.float32)
+    img[1, 2, 2, 0] = np.nan
+    np.savez(tmp_path / "nan.npz", images=img, poses=poses, focal=np.float64(10))
+    with pytest.raises(UserError, match="images contain NaN or Inf"):
+        tiny_nerf(str(tmp_path / "nan.npz"))
+
+
+def test_point_sets_need_points_per_cloud():
+    from l3d_app.data.point_sets import PointSplit
+    with pytest.raises(UserError, match="P >= 1"):
+        PointSplit(torch.zeros(4, 0, 3), labels=torch.zeros(4, dtype=torch.long))
+
+
+def test_course_rgbd_view_of_zero_pixels():
+    from l3d_app.data.course_rgbd import view_cloud
+    data = {"rgb1": np.zeros((0, 0, 3)), "depth1": np.zeros((0, 0)), "mask1": np.zeros((0, 0)), "cameras1": {}}
+    with pytest.raises(UserError, match="view 1 has 0 x 0 pixels"):
+        view_cloud(data, 1, "rgbd.pkl")
+
+
+def test_depth_colormap_of_unmatched_stereo_depths():
+    """+inf (zero disparity) and NaN take the top colour, the scale is the finite maximum: a
+    valid stereo_depth run at 32 px crashed on an index of -2^63 before."""
+    from l3d_app.render.diagnostics import depth_colormap
+    depth = torch.tensor([[1.0, 2.0], [float("inf"), float("nan")]])
+    rgb = depth_colormap(depth)
+    assert torch.isfinite(rgb).all()
+    torch.testing.assert_close(rgb[1, 0], rgb[0, 1])               # inf -> the colour of the max (2.0)
+    torch.testing.assert_close(rgb[1, 1], rgb[0, 1])
+    assert not torch.equal(rgb[0, 0], rgb[0, 1])
+
+
+def test_knobs_checked_before_training(compose):
+    from l3d_app.render.mesh_renderer import MeshRenderer
+    from l3d_app.tasks.common import require_mesh_formats, require_positive
+    from l3d_app.tasks.svr_common import require_thresholds
+    ok = compose("task=volsdf")
+    require_mesh_formats(ok)
+    for value, problem in (("[stl]", "non-empty list of ply, obj, glb"), ("[]", "non-empty list")):
+        with pytest.raises(UserError, match=problem):
+            require_mesh_formats(compose("task=volsdf", f"mesh_formats={value}"))
+    with pytest.raises(UserError, match="mesh_format must be one of ply, obj"):
+        require_mesh_formats(compose("task=neural_sdf", "mesh_format=stl"), "mesh_format", ("ply", "obj"))
+    for value in ("[]", "[-0.1,0.05]"):
+        with pytest.raises(UserError, match="thresholds must be a non-empty list of positive numbers"):
+            require_thresholds(compose("task=svr_train", f"thresholds={value}"))
+    with pytest.raises(UserError, match="iters must be a positive number, got True"):
+        require_positive(compose("task=volsdf", "iters=true"), "iters")
+    with pytest.raises(ValueError, match=r"point_lights must be a list of \[x, y, z\]"):
+        MeshRenderer(point_lights=[[1.0, 2.0]])
+
+
+@pytest.mark.parametrize("stride", [0, -1])
+def test_bunny_stride_below_one(tmp_path, stride):
+    np.savez(tmp_path / "b.npz", verts=np.random.default_rng(0).normal(size=(10, 3)))
+    with pytest.raises(UserError, match="data.stride must be an integer >= 1"):
+        bunny_points(str(tmp_path / "b.npz"), stride=stride)
+
+
+def _truck(root, sizes=(8, 8, 8), focal=2.0, points=None):
+    import imageio.v2 as imageio
+    (root / "imgs").mkdir(parents=True)
+    (root / "poses").mkdir()
+    for k, s in enumerate(sizes):
+        imageio.imwrite(root / "imgs" / f"frame{k:06d}.jpg", np.zeros((s, s, 3), np.uint8))
+        np.save(root / "poses" / f"frame{k:06d}.npy", np.concatenate([np.eye(3).reshape(-1), [0, 0, 3], [focal] * 2, [0, 0]]))
+    if points is not None:
+        (root / "points").mkdir()
+        np.save(root / "points" / "points_10000.npy", points)
+    return str(root)
+
+
+@pytest.mark.parametrize("kind,problem", [
+    ("sizes", r"have different sizes \(h, w\) \[\(8, 8\), \(16, 16\)\]"),
+    ("focal", r"focal lengths F \(values 13-14 of each pose\) must be positive"),
+    ("points", r"must hold an \(N, 3\) array of points, got shape \(10,\)"),
+])
+def test_truck_mixed_sizes_zero_focal_flat_points(tmp_path, kind, problem):
+    from l3d_app.data.nerf_formats import truck
+    root = _truck(tmp_path, sizes=(8, 16, 8) if kind == "sizes" else (8, 8, 8), focal=0.0 if kind == "focal" else 2.0,
+                  points=np.zeros(10) if kind == "points" else None)
+    with pytest.raises(UserError, match=problem):
+        truck(root, test_indices=[2])
+    assert truck(_truck(tmp_path / "ok"), test_indices=[2]).images.shape == (3, 8, 8, 3)

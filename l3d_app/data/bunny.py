@@ -6,11 +6,10 @@
 
 from __future__ import annotations
 
-import zipfile
-
 import numpy as np
 import torch
 
+from l3d_app.data.array_files import load_array_file
 from l3d_app.errors import UserError
 from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.registry import DATASETS
@@ -23,14 +22,12 @@ def bunny_points(path: str = None, key: str = "verts", stride: int = 2, center: 
     """PointCloud of ``npz[key][::stride]`` (world units), centred when ``center``."""
     if not path:
         raise UserError("data=bunny needs data.path=FILE (an .npz with key 'verts')")
+    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+        raise UserError(f"data.stride must be an integer >= 1 (keep every stride-th point), got {stride!r}")
     file = resolve_path(path)
     if not file.exists():
         raise UserError(f"bunny point cloud not found: {file}")
-    try:
-        npz = np.load(file)
-    except (OSError, EOFError, ValueError, zipfile.BadZipFile) as err:
-        raise UserError(f"{file} is not a readable .npz ({type(err).__name__}: {err})") from err
-    with npz:
+    with load_array_file(file) as npz:
         if key not in npz:
             raise UserError(f"{file} has no key '{key}' (keys: {', '.join(npz.files)})")
         pts = np.asarray(npz[key], dtype=np.float32)

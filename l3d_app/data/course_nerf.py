@@ -57,6 +57,10 @@ def tiny_nerf(path: str = None, n_train: int = 100, val_every: int = 10, backgro
     c2w = torch.from_numpy(poses.astype(np.float64))
     check_rigid_poses(c2w[:, :3, :3], c2w[:, :3, 3], file.name)
     n, (H, W) = len(images), images.shape[1:3]
+    if H < 1 or W < 1:
+        raise UserError(f"{file}: images are {H} x {W} pixels")
+    if not np.isfinite(images).all():
+        raise UserError(f"{file}: images contain NaN or Inf")
     k = min(int(n_train), n - 1)
     if k < 1:
         raise UserError(f"{file}: needs at least 2 views (train + test), got {n}")
@@ -106,6 +110,8 @@ def course_lego(root: str = None, scene: str = "lego", image_size: Optional[Sequ
     images = torch.stack(torch.chunk(strip, n, dim=0))
     if image_size is not None:
         h, w = (int(v) for v in image_size)
+        if h < 1 or w < 1:
+            raise UserError(f"image_size must be two positive sizes, got {[h, w]}")
         if abs(h / images.shape[1] - w / images.shape[2]) > 1e-3:
             raise UserError(f"image_size {[h, w]} is not an isotropic resize of {list(images.shape[1:3])}")
         images = torch.nn.functional.interpolate(images.permute(0, 3, 1, 2), size=(h, w), mode="bilinear"
@@ -114,6 +120,8 @@ def course_lego(root: str = None, scene: str = "lego", image_size: Optional[Sequ
     for s in split:
         if len(s) and (int(s.max()) >= n or int(s.min()) < 0):
             raise UserError(f"{pth}: split index out of range for {n} cameras")
+    if len(split[0]) == 0:
+        raise UserError(f"{pth}: the train split is empty")
     cams = from_pytorch3d(R, T, focal, pp, image_size=(H, W), in_ndc=True).to(dtype=torch.float32)
     box = torch.tensor(scene_box, dtype=torch.float32).reshape(2, 3)
     data = MultiViewData(images, cams, split[0], split[1], split[2], bg, box, name=f"course_lego:{scene}")

@@ -105,6 +105,8 @@ def view_cloud(data: dict, k: int, source: str, course_grid: bool = True) -> Poi
     if rgb.dim() != 3 or depth.shape != rgb.shape[:2] or mask.shape != depth.shape or depth.shape[0] != depth.shape[1]:
         raise UserError(f"{source}: view {k} needs square rgb (S, S, 3), depth (S, S), mask (S, S); got "
                         f"{tuple(rgb.shape)}, {tuple(depth.shape)}, {tuple(mask.shape)}")
+    if depth.shape[0] == 0:
+        raise UserError(f"{source}: view {k} has 0 x 0 pixels")
     if float(rgb.max()) > 1.5:
         rgb = rgb / 255.0
     S = depth.shape[0]

@@ -36,6 +36,7 @@ import torch
 
 from l3d_app.data.nerf_views import MultiViewData, background_rgb, carve_val
 from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
+from l3d_app.data.array_files import load_array_file
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import from_opengl_c2w, from_pytorch3d, stack_cameras
 from l3d_app.registry import DATASETS
@@ -184,14 +185,19 @@ def truck(root: str = "../shared/data/truck", test_indices: Sequence[int] = (33,
         pose_file = pose_dir / (f.stem + ".npy")
         if not pose_file.is_file():
             raise UserError(f"pose file missing: {pose_file}")
-        pose = np.load(pose_file).astype(np.float64).reshape(-1)
+        pose = np.asarray(load_array_file(pose_file, allow_pickle=False), dtype=np.float64).reshape(-1)
         if pose.shape[0] != 16:
             raise UserError(f"{pose_file} must hold 16 values [R(9) T(3) F(2) C(2)], got {pose.shape[0]}")
         poses.append(pose)
         images.append(torch.from_numpy(_read_image(f)[..., :3].astype(np.float32) / 255.0))
+    sizes = sorted({tuple(im.shape[:2]) for im in images})
+    if len(sizes) != 1:
+        raise UserError(f"truck images in {img_dir} have different sizes (h, w) {sizes}")
     p = torch.tensor(np.stack(poses))
     check_rigid_poses(p[:, :9].reshape(-1, 3, 3), p[:, 9:12], str(pose_dir), [f.stem + ".npy" for f in files])
     check_finite(p[:, 12:], str(pose_dir), "pose intrinsics of frame")
+    if not bool((p[:, 12:14] > 0).all()):
+        raise UserError(f"{pose_dir}: focal lengths F (values 13-14 of each pose) must be positive")
     h, w = images[0].shape[:2]
     cams = from_pytorch3d(p[:, :9].reshape(-1, 3, 3), p[:, 9:12], p[:, 12:14], p[:, 14:16],
                           image_size=(h, w), in_ndc=True).to(dtype=torch.float32)
@@ -204,7 +210,10 @@ def truck(root: str = "../shared/data/truck", test_indices: Sequence[int] = (33,
     pts_file = folder / "points" / "points_10000.npy"
     pts = None
     if pts_file.is_file():
-        pts = torch.from_numpy(np.load(pts_file).astype(np.float32)).reshape(-1, 3)
+        raw_pts = np.asarray(load_array_file(pts_file, allow_pickle=False), dtype=np.float32)
+        if raw_pts.ndim != 2 or raw_pts.shape[1] != 3 or raw_pts.shape[0] == 0:
+            raise UserError(f"{pts_file} must hold an (N, 3) array of points, got shape {raw_pts.shape}")
+        pts = torch.from_numpy(raw_pts)
         check_finite(pts, str(pts_file), "point")
         lo, hi = pts.min(0).values, pts.max(0).values
     else:

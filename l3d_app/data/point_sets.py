@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from l3d_app.data.val_split import carve_val
+from l3d_app.data.array_files import load_array_file
 from l3d_app.errors import UserError
 from l3d_app.registry import DATASETS
 
@@ -52,8 +53,8 @@ class PointSplit:
 
     def __post_init__(self):
         p = self.points
-        if p.dim() != 3 or p.shape[-1] != 3:
-            raise UserError(f"point clouds must be (N, P, 3), got {tuple(p.shape)}")
+        if p.dim() != 3 or p.shape[-1] != 3 or p.shape[1] == 0:
+            raise UserError(f"point clouds must be (N, P, 3) with P >= 1, got {tuple(p.shape)}")
         if self.labels is not None and tuple(self.labels.shape) != (p.shape[0],):
             raise UserError(f"class labels must be ({p.shape[0]},), got {tuple(self.labels.shape)}")
         if self.parts is not None and tuple(self.parts.shape) != tuple(p.shape[:2]):
@@ -125,10 +126,7 @@ def _find(root: Path, names: Sequence[str]) -> Optional[Path]:
 
 
 def _load_npy(path: Path) -> np.ndarray:
-    try:
-        return np.load(path, mmap_mode="r")
-    except (ValueError, OSError) as err:
-        raise UserError(f"cannot read {path}: {err}") from None
+    return load_array_file(path, mmap_mode="r")
 
 
 def _as_labels(array: np.ndarray, path: Path) -> torch.Tensor:
@@ -168,9 +166,13 @@ def course_pointcloud(root: str, kind: str = "cls", class_names: Optional[List[s
             raise UserError(f"missing {name}_data.npy / {name}_labels.npy in {base}")
         pts, lab = _load_npy(data_path), _load_npy(label_path)
         limit = {"train": max_train, "test": max_test}[name] or len(pts)
+        if int(limit) < 0:
+            raise UserError(f"max_{name} must be >= 0 (0: all), got {limit}")
         pts, lab = np.array(pts[:limit], dtype=np.float32), np.array(lab[:limit])
         if pts.ndim != 3 or pts.shape[-1] != 3:
             raise UserError(f"{data_path} must hold (N, P, 3) points, got {pts.shape}")
+        if not np.isfinite(pts).all():
+            raise UserError(f"{data_path}: points contain NaN or Inf")
         labels = _as_labels(lab.reshape(len(lab), -1).squeeze(1) if lab.ndim == 2 and lab.shape[1] == 1
                             else lab, label_path)
         if labels.dim() == 1:

@@ -13,6 +13,8 @@
 
 from __future__ import annotations
 
+import math
+
 from typing import Optional, Tuple
 
 import torch
@@ -59,14 +61,18 @@ def ray_sample_points(cams: Cameras, near: float, far: float, n_samples: int,
 
 def depth_colormap(depth: torch.Tensor, mask: Optional[torch.Tensor] = None, vmax: Optional[float] = None,
                    cmap: str = "viridis", background: float = 1.0) -> torch.Tensor:
-    """(..., H, W) depth -> (..., H, W, 3) colours: ``depth / vmax`` (default: the maximum depth
-    under ``mask``) through ``cmap``; ``background`` grey where ``mask`` is False."""
+    """(..., H, W) depth -> (..., H, W, 3) colours: ``depth / vmax`` (default: the maximum finite
+    depth under ``mask``) through ``cmap``; ``background`` grey where ``mask`` is False. A depth
+    of +inf or NaN (no stereo match, a zero disparity) gets the top colour, -inf the bottom."""
     import matplotlib
 
     mask = torch.ones_like(depth, dtype=torch.bool) if mask is None else mask.bool()
     if vmax is None:
-        vmax = float(depth[mask].max()) if bool(mask.any()) else 1.0
-    norm = (depth / max(float(vmax), 1e-12)).clamp(0.0, 1.0)
+        finite = mask & torch.isfinite(depth)
+        vmax = float(depth[finite].max()) if bool(finite.any()) else 1.0
+    if not math.isfinite(float(vmax)):
+        vmax = 1.0
+    norm = torch.nan_to_num(depth / max(float(vmax), 1e-12), nan=1.0, posinf=1.0, neginf=0.0).clamp(0.0, 1.0)
     lut = torch.as_tensor(matplotlib.colormaps[cmap](torch.linspace(0, 1, 256).numpy())[:, :3],
                           dtype=torch.float32)
     rgb = lut[(norm.detach().cpu() * 255).round().long()]

@@ -54,12 +54,15 @@ def save_glb(mesh: Mesh, path) -> Path:
     return Path(path)
 
 
+FIELD_MESH_FORMATS = ("ply", "obj", "glb")
+
+
 def save_field_mesh(mesh: Mesh, stem, formats: Sequence[str] = ("ply", "glb")) -> list:
     """Write ``stem.<fmt>`` for each of ``formats`` (ply | obj | glb); returns the paths."""
     paths = []
     for fmt in formats:
         fmt = str(fmt).lower().lstrip(".")
-        if fmt not in ("ply", "obj", "glb"):
+        if fmt not in FIELD_MESH_FORMATS:
             raise UserError(f"mesh format must be ply, obj or glb, got {fmt!r}")
         path = Path(f"{stem}.{fmt}")
         paths.append(save_glb(mesh, path) if fmt == "glb" else save_mesh(mesh, path))

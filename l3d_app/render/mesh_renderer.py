@@ -92,6 +92,8 @@ class MeshRenderer:
                                 else tuple(float(c) for c in light_direction))
         self.light_color = tuple(float(c) for c in light_color)
         self.point_lights = [tuple(map(float, p)) for p in (point_lights or [])]
+        if any(len(p) != 3 for p in self.point_lights):
+            raise ValueError(f"point_lights must be a list of [x, y, z] positions, got {list(point_lights)}")
         self.antialias, self.near = int(antialias), float(near)
         self.cull_backfaces = bool(cull_backfaces)
 

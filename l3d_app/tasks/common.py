@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Dict
+from typing import Dict, Sequence
 
 import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
+from l3d_app.render.field_mesh import FIELD_MESH_FORMATS
 from l3d_app.runtime.progress import progress
 
 
@@ -15,7 +16,7 @@ def require_positive(cfg, *keys: str) -> None:
     """UserError naming the first of ``keys`` whose config value is not > 0."""
     for key in keys:
         value = cfg.get(key)
-        if value is None or not isinstance(value, (int, float)) or value <= 0:
+        if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0:
             raise UserError(f"{key} must be a positive number, got {value!r}")
 
 
@@ -33,6 +34,17 @@ def require_mesh_resolution(cfg) -> None:
     value = cfg.get("mesh_resolution")
     if isinstance(value, bool) or not isinstance(value, int) or value < 2:
         raise UserError(f"mesh_resolution must be an integer >= 2 (marching-cubes cells per axis), got {value!r}")
+
+
+def require_mesh_formats(cfg, key: str = "mesh_formats", allowed: Sequence[str] = FIELD_MESH_FORMATS) -> None:
+    """UserError unless ``cfg[key]`` is a non-empty list of formats in ``allowed`` (a single
+    string for ``mesh_format``): checked before training, since the mesh is written after it."""
+    value = cfg.get(key)
+    formats = [value] if isinstance(value, str) else list(value or [])
+    bad = [f for f in formats if str(f).lower().lstrip(".") not in allowed]
+    if not formats or bad:
+        raise UserError(f"{key} must be {'one' if isinstance(value, str) else 'a non-empty list'} of "
+                        f"{', '.join(allowed)}, got {value!r}")
 
 
 RUN_KEYS_NONNEGATIVE = ("time_budget", "reserve", "gif_frames", "turntable_size", "eval_views", "checkpoint_every")

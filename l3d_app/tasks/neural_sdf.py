@@ -40,7 +40,7 @@ from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint, randperm
 from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.common import require_mesh_resolution, require_nonnegative, require_positive
+from l3d_app.tasks.common import require_mesh_formats, require_mesh_resolution, require_nonnegative, require_positive
 
 
 @TASKS.register("neural_sdf")
@@ -49,6 +49,7 @@ def neural_sdf(cfg, ctx) -> dict:
                      "eval_points", "f1_threshold")
     require_nonnegative(cfg, "w_eikonal", "w_offsurface", "bounds_padding")
     require_mesh_resolution(cfg)
+    require_mesh_formats(cfg, "mesh_format", ("ply", "obj"))
     if not 0.0 <= float(cfg.val_fraction) < 1.0:
         raise UserError(f"val_fraction must be in [0, 1), got {cfg.val_fraction!r}")
     cloud = DATASETS.build(cfg.data)
@@ -94,8 +95,6 @@ def neural_sdf(cfg, ctx) -> dict:
                                  "history": result.history_rows()}
     sdf = net.sdf
     fmt = str(cfg.mesh_format).lower().lstrip(".")
-    if fmt not in ("ply", "obj"):
-        raise UserError(f"mesh_format must be ply or obj, got {cfg.mesh_format!r}")
     try:
         mesh = sdf_to_mesh(sdf, resolution=int(cfg.mesh_resolution), bounds=box, device=ctx.device)
     except UserError as err:

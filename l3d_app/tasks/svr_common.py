@@ -45,6 +45,17 @@ def plain(cfg) -> Dict[str, Any]:
     return dict(cfg)
 
 
+def require_thresholds(cfg) -> None:
+    """UserError unless ``cfg.thresholds`` (F1 distances, world units) is a non-empty list of
+    positive numbers: checked before training, since they are read after it."""
+    try:
+        values = [float(t) for t in cfg.thresholds]
+    except (TypeError, ValueError) as err:
+        raise UserError(f"thresholds must be a list of positive numbers, got {cfg.get('thresholds')!r}") from err
+    if not values or not all(t > 0 for t in values):
+        raise UserError(f"thresholds must be a non-empty list of positive numbers, got {cfg.get('thresholds')!r}")
+
+
 def load_data(data_cfg) -> SVRData:
     """The configured image-to-3D data source (train / val / test object indices)."""
     data = DATASETS.build(data_cfg)

@@ -14,13 +14,14 @@ from __future__ import annotations
 from l3d_app.models.svr_model import load_svr_model, n_params
 from l3d_app.registry import TASKS
 from l3d_app.tasks.common import require_positive
-from l3d_app.tasks.svr_common import evaluate_and_report, load_data
+from l3d_app.tasks.svr_common import evaluate_and_report, load_data, require_thresholds
 
 
 @TASKS.register("svr_eval")
 def svr_eval(cfg, ctx) -> dict:
     model, meta = load_svr_model(cfg.get("checkpoint"), ctx.device)
     require_positive(cfg, "eval_points", "turntable_size")
+    require_thresholds(cfg)
     with ctx.stopwatch.stage("data"):
         data = load_data(meta["data_cfg"])
     name = str(meta["decoder_cfg"]["name"])

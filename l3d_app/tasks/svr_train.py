@@ -27,7 +27,8 @@ from l3d_app.registry import TASKS
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import require_nonnegative, require_positive
-from l3d_app.tasks.svr_common import evaluate_and_report, geometry_of, load_data, make_batch, plain, predict_points
+from l3d_app.tasks.svr_common import (evaluate_and_report, geometry_of, load_data, make_batch, plain, predict_points,
+                                      require_thresholds)
 
 VAL_SEED_OFFSET = 99  # the validation stream: seed + this (any fixed value; chosen once)
 
@@ -35,6 +36,7 @@ VAL_SEED_OFFSET = 99  # the validation stream: seed + this (any fixed value; cho
 @TASKS.register("svr_train")
 def svr_train(cfg, ctx) -> dict:
     require_positive(cfg, "iters", "batch_size", "lr", "eval_points", "turntable_size", "vis_points", "error_max")
+    require_thresholds(cfg)
     require_nonnegative(cfg, "lr_floor", "w_smooth", "eval_every", "quick_eval_objects", "eval_objects", "eval_view",
                         "num_vis")
     with ctx.stopwatch.stage("data"):

@@ -34,7 +34,8 @@ from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.precision import maybe_compile
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import background_parameter, require_mesh_resolution, require_positive
+from l3d_app.tasks.common import (background_parameter, require_mesh_formats, require_mesh_resolution,
+                                 require_positive)
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
                                         write_turntables)
 
@@ -45,6 +46,7 @@ def train_nerf(cfg, ctx) -> dict:
     require_positive(cfg, "iters", "batch_rays", "chunk", "eval_every")
     if bool(cfg.extract_mesh):
         require_mesh_resolution(cfg)
+        require_mesh_formats(cfg)
     data = DATASETS.build(cfg.data).to(ctx.device)
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)

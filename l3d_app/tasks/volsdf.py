@@ -103,8 +103,8 @@ from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import (background_parameter, require_mesh_resolution, require_nonnegative,
-                                 require_positive)
+from l3d_app.tasks.common import (background_parameter, require_mesh_formats, require_mesh_resolution,
+                                 require_nonnegative, require_positive)
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
                                         write_turntables)
 from l3d_app.tasks.free_space_common import FILE as FREE_SPACE_FILE
@@ -120,6 +120,7 @@ def volsdf(cfg, ctx) -> dict:
                         "warmup_steps", "level_every")     # the shared run knobs: app.run_task (require_run_keys)
     require_positive(cfg, "cache_every")
     require_mesh_resolution(cfg)
+    require_mesh_formats(cfg)
     check_free_space_config(cfg.free_space)
     fs = resolve_free_space(cfg.free_space, cfg.density.name)     # steps=auto: on with density=volsdf only
     if int(fs.steps) > 0 and str(fs.loss) == "density" and str(cfg.density.name) != "volsdf":
