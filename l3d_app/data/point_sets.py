@@ -29,8 +29,8 @@ from typing import List, Optional, Sequence
 import numpy as np
 import torch
 
-from l3d_app.data.val_split import carve_val
 from l3d_app.data.array_files import load_array_file
+from l3d_app.data.val_split import carve_val
 from l3d_app.errors import UserError
 from l3d_app.registry import DATASETS
 
