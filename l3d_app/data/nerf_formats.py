@@ -34,9 +34,9 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from l3d_app.data.array_files import load_array_file
 from l3d_app.data.nerf_views import MultiViewData, background_rgb, carve_val
 from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
-from l3d_app.data.array_files import load_array_file
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import from_opengl_c2w, from_pytorch3d, stack_cameras
 from l3d_app.registry import DATASETS
