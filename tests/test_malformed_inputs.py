@@ -241,3 +241,21 @@ def test_truck_mixed_sizes_zero_focal_flat_points(tmp_path, kind, problem):
     with pytest.raises(UserError, match=problem):
         truck(root, test_indices=[2])
     assert truck(_truck(tmp_path / "ok"), test_indices=[2]).images.shape == (3, 8, 8, 3)
+
+
+@pytest.mark.parametrize("args,problem", [
+    (("task=train_prior", "ema_decay=2"), r"ema_decay must be a number in \[0, 1\]"),
+    (("task=train_prior", "slot_drop=1.5"), r"slot_drop must be a number in \[0, 1\]"),
+    (("task=pca_normals", "up=[0,0,0]"), "up must be a non-zero"),
+    (("task=sampling_variance", "slab.start=4", "slab.end=2"), "slab.end must be greater than slab.start"),
+    (("task=sampling_variance", "bump.density=-2"), "must be >= 0"),
+    (("task=stereo_depth", "focal_px=0"), "focal_px must be a positive number"),
+    (("task=stereo_depth", "sweep.baselines=[]"), "sweep lists must be non-empty"),
+    (("task=stereo_depth", "sweep.sigmas_px=[-1,0.5]"), "sigmas_px >= 0"),
+    (("task=pointnet_robustness", "num_points_list=[]"), "must be non-empty"),
+    (("task=pointnet_robustness", "num_points_list=[-5]"), "the counts >= 1"),
+])
+def test_out_of_range_knobs_fail_before_any_work(compose, tmp_path, args, problem):
+    with pytest.raises(UserError, match=problem):
+        run_task(compose(*args, "tensorboard=false"), out_dir=tmp_path / "run")
+    assert not any((tmp_path / "run").glob("*.png"))

@@ -20,6 +20,15 @@ def require_positive(cfg, *keys: str) -> None:
             raise UserError(f"{key} must be a positive number, got {value!r}")
 
 
+def require_fraction(cfg, *keys: str) -> None:
+    """UserError naming the first of ``keys`` whose config value is not a number in [0, 1]
+    (a probability, a decay)."""
+    for key in keys:
+        value = cfg.get(key)
+        if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
+            raise UserError(f"{key} must be a number in [0, 1], got {value!r}")
+
+
 def require_nonnegative(cfg, *keys: str) -> None:
     """UserError naming the first of ``keys`` whose config value is not a number >= 0."""
     for key in keys:

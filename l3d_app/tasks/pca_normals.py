@@ -34,6 +34,8 @@ def pca_normals(cfg, ctx) -> dict:
     require_positive(cfg, "k", "tolerance_deg", "image_size")
     if int(cfg.k) < 3 or not float(cfg.tolerance_deg) < 45:
         raise UserError(f"need k >= 3 and tolerance_deg < 45, got k={cfg.k}, tolerance_deg={cfg.tolerance_deg}")
+    if not (len(cfg.up) == 3 and any(float(v) != 0 for v in cfg.up)):
+        raise UserError(f"up must be a non-zero [x, y, z] direction, got {list(cfg.up)}")
     cloud = DATASETS.build(cfg.data, device=ctx.device)
     if not isinstance(cloud, PointCloud):
         raise UserError("pca_normals needs a point-cloud data source (data=room, data=rgbd, data=*_parametric, ...)")

@@ -67,6 +67,9 @@ def pointnet_robustness(cfg, ctx) -> dict:
     """Rotation and point-count tables for a classifier and a segmenter (see module doc)."""
     degrees: List[float] = [float(d) for d in cfg.rotation_degrees]
     counts: List[int] = [int(n) for n in cfg.num_points_list]
+    if not degrees or not counts or min(counts) < 1:
+        raise UserError(f"rotation_degrees and num_points_list must be non-empty, the counts >= 1; got "
+                        f"{degrees}, {counts}")
     kinds = [str(k) for k in cfg.robust_kinds]
     if not kinds or any(k not in ("cls", "seg") for k in kinds):
         raise UserError(f"robust_kinds must list cls and/or seg, got {kinds}")

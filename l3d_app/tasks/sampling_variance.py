@@ -24,6 +24,10 @@ from l3d_app.tasks.common import require_positive
 def sampling_variance(cfg, ctx) -> dict:
     """Measure both samplers on both densities over the sample counts; table, plot, slopes."""
     require_positive(cfg, "rays", "far")
+    if not float(cfg.slab.end) > float(cfg.slab.start):
+        raise UserError(f"slab.end must be greater than slab.start, got {cfg.slab.start} .. {cfg.slab.end}")
+    if float(cfg.slab.density) < 0 or float(cfg.bump.density) < 0 or float(cfg.bump.width) <= 0:
+        raise UserError("slab.density and bump.density must be >= 0 and bump.width > 0")
     near, far = float(cfg.near), float(cfg.far)
     ns = [int(n) for n in cfg.samples]
     if not ns or min(ns) < 2 or not 0 <= near < far:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.metrics.stereo_error import binned_rmse, noisy_depth, simulate_depth_error
 from l3d_app.registry import DATASETS, RENDERERS, TASKS
@@ -49,6 +50,11 @@ def _table(rows) -> str:
 def stereo_depth(cfg, ctx) -> dict:
     """Render the depth, simulate the rig, write pictures, table and plot."""
     require_positive(cfg, "image_size", "distance", "fov", "baseline", "sigma_px", "trials")
+    if cfg.get("focal_px") is not None and not float(cfg.focal_px) > 0:
+        raise UserError(f"focal_px must be a positive number of pixels or null (the camera's), got {cfg.focal_px!r}")
+    sweep = {k: [float(v) for v in cfg.sweep[k]] for k in ("baselines", "focal_scales", "sigmas_px")}
+    if not all(sweep.values()) or min(sweep["baselines"] + sweep["focal_scales"]) <= 0 or min(sweep["sigmas_px"]) < 0:
+        raise UserError(f"sweep lists must be non-empty, baselines and focal_scales > 0, sigmas_px >= 0; got {sweep}")
     scene = DATASETS.build(cfg.data, device=ctx.device)
     cams = look_at_cameras(float(cfg.distance), float(cfg.elevation), float(cfg.azimuth), float(cfg.fov),
                            int(cfg.image_size), device=ctx.device)
@@ -56,7 +62,7 @@ def stereo_depth(cfg, ctx) -> dict:
         out = RENDERERS.build(cfg.renderer)(scene, cams)
     mask = (out["alpha"][0] > 0.999).cpu()
     depth = out["depth"][0].cpu().to(torch.float64)
-    f0 = float(cfg.focal_px) if cfg.get("focal_px") else float(cams.fx[0])
+    f0 = float(cfg.focal_px) if cfg.get("focal_px") is not None else float(cams.fx[0])
     b0, s0 = float(cfg.baseline), float(cfg.sigma_px)
     rec = noisy_depth(depth, f0, b0, s0, ctx.generator)
     zmax = float(depth[mask].max())

@@ -39,7 +39,7 @@ from l3d_app.runtime.lr_schedules import warmup_cosine
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.paths import resolve_path
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import require_positive
+from l3d_app.tasks.common import require_fraction, require_positive
 from l3d_app.tasks.prior_common import full_prompts, image_grid
 
 
@@ -72,6 +72,7 @@ def _lr_factor(decay: str, iters: int, ae_iters: int, warmup: int, final: float)
 def train_prior(cfg, ctx) -> dict:
     """Train, evaluate sample match rates, export the float16 checkpoint; return metrics."""
     require_positive(cfg, "iters", "batch_size", "lr", "image_size", "channels", "eval_prompts", "sample_steps")
+    require_fraction(cfg, "ema_decay", "slot_drop", "all_drop")
     spaces = _spaces(str(cfg.space))
     S, dev, gen = int(cfg.image_size), ctx.device, ctx.generator
     ae_iters = int(cfg.ae_iters) if "latent" in spaces else 0
