@@ -259,3 +259,25 @@ def test_out_of_range_knobs_fail_before_any_work(compose, tmp_path, args, proble
     with pytest.raises(UserError, match=problem):
         run_task(compose(*args, "tensorboard=false"), out_dir=tmp_path / "run")
     assert not any((tmp_path / "run").glob("*.png"))
+
+
+@pytest.mark.parametrize("args,problem", [
+    (("task=box", "init_size=[-1,1,1]"), "init_size must be three positive side lengths"),
+    (("task=fit_vox", "pos_weight=-2"), "pos_weight must be a positive weight"),
+])
+def test_box_and_fit_vox_knobs(compose, tmp_path, args, problem):
+    with pytest.raises(UserError, match=problem):
+        run_task(compose(*args, "tensorboard=false"), out_dir=tmp_path / "run")
+
+
+def test_course_rgbd_with_no_valid_pixel(tmp_path, monkeypatch):
+    import types
+
+    from l3d_app.data import course_rgbd as module
+    cam = types.SimpleNamespace(R=np.eye(3)[None], T=np.array([[0.0, 0.0, 3.0]]), fov=np.array([60.0]))
+    view = {"rgb1": np.zeros((4, 4, 3)), "depth1": np.ones((4, 4)), "mask1": np.zeros((4, 4)), "cameras1": cam}
+    monkeypatch.setattr(module, "load_pickle", lambda file: view)       # the pickle's content, as read
+    with pytest.raises(UserError, match="no pixel of view"):
+        module.course_rgbd(str(tmp_path / "rgbd.pkl"), view="1")
+    view["mask1"] = np.ones((4, 4))
+    assert module.course_rgbd(str(tmp_path / "rgbd.pkl"), view="1").points.shape == (16, 3)

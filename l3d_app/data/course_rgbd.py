@@ -130,4 +130,6 @@ def course_rgbd(path: str = None, view: str = "union", course_grid: bool = True,
     if views is None:
         raise UserError(f"data.view must be 1, 2 or union, got {view!r}")
     cloud = concat_clouds([view_cloud(data, k, str(file), bool(course_grid)) for k in views])
+    if cloud.points.shape[0] == 0:
+        raise UserError(f"{file}: no pixel of view(s) {views} has a positive depth inside its mask")
     return cloud if device is None else cloud.to(device)

@@ -32,6 +32,7 @@ from typing import Dict
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.metrics.image import psnr
 from l3d_app.registry import DATASETS, SAMPLERS, TASKS
@@ -52,6 +53,8 @@ from l3d_app.tasks.common import require_positive
 def box(cfg, ctx) -> dict:
     """Fit the box; write metrics (box_center, box_size, errors, psnr) and a turntable gif."""
     require_positive(cfg, "iters", "batch_rays", "lr", "n_samples", "beta", "eval_stride", "chunk")
+    if len(cfg.init_size) != 3 or min(float(v) for v in cfg.init_size) <= 0:
+        raise UserError(f"init_size must be three positive side lengths, got {list(cfg.init_size)}")
     data = DATASETS.build({**cfg.data, "root": str(resolve_path(cfg.data.root))}, device=ctx.device)
     origins, dirs = camera_rays(data.cameras, normalize=True)            # (4, H, W, 3)
     target = data.images

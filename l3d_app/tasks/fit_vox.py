@@ -26,6 +26,8 @@ from l3d_app.tasks.fit_common import check_fit_knobs, load_target_mesh, side_by_
 def fit_vox(cfg, ctx) -> dict:
     """Fit, evaluate IoU every ``eval_every`` steps, write the gif; return the metrics."""
     check_fit_knobs(cfg, "voxel_size", "lr", "eval_every")
+    if cfg.get("pos_weight") is not None and not float(cfg.pos_weight) > 0:
+        raise UserError(f"pos_weight must be a positive weight of occupied cells or null, got {cfg.pos_weight!r}")
     target_mesh = load_target_mesh(cfg, ctx.device)
     R = int(cfg.voxel_size)
     lo, hi = target_mesh.bounds()
