@@ -281,3 +281,8 @@ def test_course_rgbd_with_no_valid_pixel(tmp_path, monkeypatch):
         module.course_rgbd(str(tmp_path / "rgbd.pkl"), view="1")
     view["mask1"] = np.ones((4, 4))
     assert module.course_rgbd(str(tmp_path / "rgbd.pkl"), view="1").points.shape == (16, 3)
+
+
+def test_svr_eval_view_outside_the_views_per_object(compose, tmp_path):
+    with pytest.raises(UserError, match=r"eval_view must be in \[0, "):
+        run_task(compose("task=svr_train", "eval_view=99", "tensorboard=false"), out_dir=tmp_path / "run")

@@ -56,6 +56,14 @@ def require_thresholds(cfg) -> None:
         raise UserError(f"thresholds must be a non-empty list of positive numbers, got {cfg.get('thresholds')!r}")
 
 
+def require_eval_view(cfg, data: SVRData) -> None:
+    """UserError unless ``cfg.eval_view`` indexes one of the data's views per object (checked
+    when the data is loaded, before training)."""
+    views = int(data.images.shape[1])
+    if not 0 <= int(cfg.eval_view) < views:
+        raise UserError(f"eval_view must be in [0, {views}) (the views per object), got {cfg.eval_view}")
+
+
 def load_data(data_cfg) -> SVRData:
     """The configured image-to-3D data source (train / val / test object indices)."""
     data = DATASETS.build(data_cfg)
@@ -175,7 +183,7 @@ def evaluate_and_report(model: SVRModel, data: SVRData, cfg, ctx, name: str, ste
     F1 at ``thresholds`` (curve PNG), chamfer, seconds per image, pictures, all logged as
     ``test/...`` at ``step``. Returns metrics."""
     objects = data.test[: int(cfg.eval_objects)] if int(cfg.eval_objects) > 0 else data.test
-    views = torch.full_like(objects, int(cfg.eval_view) % data.images.shape[1])
+    views = torch.full_like(objects, int(cfg.eval_view))
     # a fixed evaluation stream (CPU), so svr_train's final figures and svr_eval's agree
     gen = torch.Generator().manual_seed(int(cfg.seed) + EVAL_SEED_OFFSET)
     thresholds = [float(t) for t in cfg.thresholds]

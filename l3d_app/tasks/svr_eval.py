@@ -14,7 +14,7 @@ from __future__ import annotations
 from l3d_app.models.svr_model import load_svr_model, n_params
 from l3d_app.registry import TASKS
 from l3d_app.tasks.common import require_positive
-from l3d_app.tasks.svr_common import evaluate_and_report, load_data, require_thresholds
+from l3d_app.tasks.svr_common import evaluate_and_report, load_data, require_eval_view, require_thresholds
 
 
 @TASKS.register("svr_eval")
@@ -24,6 +24,7 @@ def svr_eval(cfg, ctx) -> dict:
     require_thresholds(cfg)
     with ctx.stopwatch.stage("data"):
         data = load_data(meta["data_cfg"])
+    require_eval_view(cfg, data)
     name = str(meta["decoder_cfg"]["name"])
     step = int(meta.get("step", 0))
     metrics = evaluate_and_report(model, data, cfg, ctx, f"svr_eval {name}", step)

@@ -28,7 +28,7 @@ from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import require_nonnegative, require_positive
 from l3d_app.tasks.svr_common import (evaluate_and_report, geometry_of, load_data, make_batch, plain, predict_points,
-                                      require_thresholds)
+                                      require_eval_view, require_thresholds)
 
 VAL_SEED_OFFSET = 99  # the validation stream: seed + this (any fixed value; chosen once)
 
@@ -41,6 +41,7 @@ def svr_train(cfg, ctx) -> dict:
                         "num_vis")
     with ctx.stopwatch.stage("data"):
         data = load_data(cfg.data)
+    require_eval_view(cfg, data)
     geometry = geometry_of(data)
     encoder_cfg, decoder_cfg = plain(cfg.encoder), plain(cfg.decoder)
     model = build_svr_model(encoder_cfg, decoder_cfg, geometry).to(ctx.device)
