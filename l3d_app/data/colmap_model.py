@@ -192,18 +192,16 @@ def _lines(path: Path) -> List[str]:
     return [ln for ln in path.read_text().splitlines() if not ln.startswith("#")]
 
 
-def _floats(path: Path, line_no: int, tokens: List[str]) -> List[float]:
+def _floats(path: Path, line_no: int, tokens: List[str], cast=float) -> list:
+    """``tokens`` of a text line as numbers (``cast``); a token that is not one is a UserError."""
     try:
-        return [float(t) for t in tokens]
+        return [cast(t) for t in tokens]
     except ValueError as err:
         raise UserError(f"{path}: line {line_no}: {err}") from err
 
 
 def _int(path: Path, line_no: int, token: str) -> int:
-    try:
-        return int(token)
-    except ValueError as err:
-        raise UserError(f"{path}: line {line_no}: {err}") from err
+    return _floats(path, line_no, [token], int)[0]
 
 
 def read_cameras_txt(path: Path) -> Dict[int, ColmapCamera]:
