@@ -24,6 +24,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from l3d_app.errors import UserError
 from l3d_app.registry import TASKS
+from l3d_app.runtime.config_types import check_command_line_types
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.device import resolve_device
 from l3d_app.runtime.logger import RunLogger
@@ -93,6 +94,7 @@ def run_task(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]
     if missing:
         raise UserError(f"missing value for {missing[0]}: pass it on the command line, "
                         f"e.g. {missing[0]}=...")
+    check_command_line_types(cfg)
     load_registries()
     task = TASKS.get(str(cfg.task_name))
     require_run_keys(cfg)

@@ -81,6 +81,11 @@ def test_cli_multirun_writes_one_directory_per_job(tmp_path):
     (["data=mesh"], "data.path"),
     (["data=mesh", "data.path=/no/such/mesh.obj"], "not found"),
     (["data=builtin", "data.scene=teapot"], "teapot"),
+    # a value of the wrong type for its default: refused before anything runs (runtime/config_types)
+    (["task=fit_point", "iters=2.5"], "iters must be an integer, got 2.5"),
+    (["elevation=abc"], "elevation must be a number, got 'abc'"),
+    (["tensorboard=no"], "tensorboard must be true or false, got 'no'"),
+    (["renderer.antialias=1.5"], "renderer.antialias must be an integer, got 1.5"),    # a key of a config group
 ])
 def test_cli_bad_input_is_one_clear_line(tmp_path, args, needle):
     out = main_py(*args, "num_frames=2", "image_size=16", f"hydra.run.dir={tmp_path / 'run'}")

@@ -1,0 +1,137 @@
+"""Command-line values checked against the type of the default they replace.
+
+Hydra parses ``iters=2.5`` as a float and ``resume=no`` as the string ``"no"``; a task that
+reads them with ``int(...)`` or ``bool(...)`` would run 2 steps, or resume, without a word.
+:func:`override_type_errors` compares each overridden value with the value the same key has
+in the config composed without the user's value overrides (the same task, data and other
+group choices), by these rules:
+
+* default an integer (a count, a size): an integer, or a float with an integral value
+  (``1e3``); not a bool, a string or a fraction;
+* default a float: an integer or a float; not a bool or a string;
+* default a bool: ``true`` or ``false``;
+* default a non-empty list of numbers (a colour, a range, a sweep): a list of numbers, of any
+  length (the task checks the length it needs);
+* anything else (strings, lists of strings or lists, ``null`` defaults, keys added with
+  ``+``): not checked here, the task checks its own.
+
+``null`` is always let through (a task that cannot use it says so itself).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Iterable, List, Optional
+
+from omegaconf import DictConfig, OmegaConf
+
+from l3d_app.errors import UserError
+
+_MISSING = object()
+
+
+def _shown(value: Any) -> str:
+    """A value as the user typed it: ``true`` / ``false`` for bools, ``repr`` otherwise."""
+    return str(value).lower() if isinstance(value, bool) else repr(value)
+
+
+def value_type_error(key: str, default: Any, value: Any) -> Optional[str]:
+    """One line saying why ``value`` cannot replace ``default`` for ``key``, or None when it can."""
+    if value is None or default is None:
+        return None
+    if isinstance(default, bool):
+        return None if isinstance(value, bool) else f"{key} must be true or false, got {_shown(value)}"
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return f"{key} must be an integer, got {_shown(value)}"
+        if isinstance(value, float) and not value.is_integer():
+            return f"{key} must be an integer, got {_shown(value)}"
+        return None
+    if isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return f"{key} must be a number, got {_shown(value)}"
+    if _is_number_list(default) and not _is_number_list(value, allow_empty=True):
+        return f"{key} must be a list of numbers, got {_shown(value)}"
+    return None
+
+
+def _is_number_list(value: Any, allow_empty: bool = False) -> bool:
+    """A list (or tuple) whose every entry is an int or a float (not a bool); non-empty unless
+    ``allow_empty``."""
+    return isinstance(value, (list, tuple)) and (allow_empty or len(value) > 0) and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+
+
+def _plain(value: Any) -> Any:
+    """A config node as plain Python (a ListConfig as a list); anything else as it is."""
+    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+
+
+def override_type_errors(cfg: DictConfig, defaults: DictConfig, keys: Iterable[str]) -> List[str]:
+    """The :func:`value_type_error` lines of ``keys`` (dotted) in ``cfg`` against ``defaults``."""
+    errors = []
+    for key in keys:
+        default, value = (_plain(OmegaConf.select(c, key, default=_MISSING)) for c in (defaults, cfg))
+        if default is _MISSING or value is _MISSING:
+            continue
+        message = value_type_error(key, default, value)
+        if message:
+            errors.append(message)
+    return errors
+
+
+def value_override_keys(overrides: Iterable[str], groups: Iterable[str]) -> List[str]:
+    """The dotted keys of Hydra's command-line value overrides (``iters=2``, ``data.root=x``).
+
+    Group choices (``task=volsdf``, ``renderer@point_renderer=points``: their key is one of
+    ``groups``), additions (``+key=``) and deletions (``~key``) are left out.
+    """
+    group_names = set(groups)
+    keys = []
+    for item in overrides:
+        if item.startswith(("+", "~")) or "=" not in item:
+            continue
+        key = item.split("=", 1)[0]
+        if key not in group_names:
+            keys.append(key)
+    return keys
+
+
+def check_command_line_types(cfg: DictConfig) -> None:
+    """Raise :class:`UserError` for the first command-line value whose type does not fit its
+    default (:func:`value_type_error`). The defaults are the config composed again with the
+    run's group choices and no value overrides. Outside a Hydra run, or where Hydra cannot
+    compose again (a launcher's worker process), nothing is checked.
+    """
+    try:
+        from hydra import compose
+        from hydra.core.hydra_config import HydraConfig
+
+        if not HydraConfig.initialized():
+            return
+        hydra_cfg = HydraConfig.get()
+        choices = {group: choice for group, choice in hydra_cfg.runtime.choices.items()
+                   if choice is not None and not group.startswith("hydra/")}
+        keys = value_override_keys(hydra_cfg.overrides.task, choices)
+        if not keys:
+            return
+        defaults = compose(config_name=hydra_cfg.job.config_name,
+                           overrides=[f"{group}={choice}" for group, choice in choices.items()])
+    except Exception:  # noqa: BLE001 -- a pre-check only: the run goes on as Hydra composed it
+        return
+    errors = override_type_errors(cfg, defaults, keys)
+    if errors:
+        raise UserError(errors[0])
+
+
+def config_floats(value: Any, key: str, length: Optional[int] = None) -> List[float]:
+    """A config list of numbers as floats, or :class:`UserError` naming ``key``.
+
+    Args: value: the config value (a list, a ListConfig or a tuple); key: its name in the
+        message; length: the required number of entries (None: any).
+    """
+    items = OmegaConf.to_container(value) if OmegaConf.is_list(value) else value
+    shape = f"a list of {length} numbers" if length is not None else "a list of numbers"
+    if not isinstance(items, (list, tuple)) or (length is not None and len(items) != length) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in items):
+        raise UserError(f"{key} must be {shape}, got {_shown(value if items is None else items)}")
+    return [float(v) for v in items]
