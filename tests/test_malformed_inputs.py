@@ -286,3 +286,74 @@ def test_course_rgbd_with_no_valid_pixel(tmp_path, monkeypatch):
 def test_svr_eval_view_outside_the_views_per_object(compose, tmp_path):
     with pytest.raises(UserError, match=r"eval_view must be in \[0, "):
         run_task(compose("task=svr_train", "eval_view=99", "tensorboard=false"), out_dir=tmp_path / "run")
+
+
+@pytest.mark.parametrize("args,problem", [
+    (("task=stereo_depth", "focal_px=wide"), "focal_px must be a positive number, got 'wide'"),
+    (("task=stereo_depth", "sweep.sigmas_px=[a,1]"), r"sweep.sigmas_px must be a list of numbers, got \['a', 1\]"),
+    (("task=render360", "points_beside=true", "points_beside_samples=0"), "points_beside_samples must be a positive"),
+    (("task=render360", "camera=relative", "camera.rotation_deg=[1,2]"),
+     r"camera.rotation_deg must be a list of 3 numbers, got \[1, 2\]"),
+    (("task=pointnet_cls", "augment_rotation=true", "rotation_axis=w"), "rotation axis must be x, y or z, got 'w'"),
+    (("task=pointnet_robustness", "rotation_axis=w"), "rotation axis must be x, y or z, got 'w'"),
+    (("task=pointnet_robustness", "rotation_degrees=[0,a]"), "rotation_degrees must be a list of numbers"),
+    (("task=surface_tradeoff", "chamfer_backend=gpu"), "unknown backend 'gpu'"),
+    (("task=sds_mesh", "distance_range=[8]"), r"distance range \[lo, hi\] must be a list of 2 numbers, got \[8\]"),
+    (("task=sds_mesh", "elevation_range=[0,95]"), r"strictly inside \(-90, 90\)"),
+    (("task=sds_nerf", "fov_range=[50,30]"), "fov range must be"),
+])
+def test_knobs_checked_before_the_data_is_built(compose, tmp_path, monkeypatch, args, problem):
+    """A second audit (2026-11-27) found these checked only after rendering, loading or training had started."""
+    from l3d_app import registry
+    from l3d_app.tasks import point_common
+
+    def no_work(*_, **__):
+        raise AssertionError("the data was built before the knobs were checked")
+
+    monkeypatch.setattr(registry.DATASETS, "build", no_work)
+    monkeypatch.setattr(point_common, "load_data", no_work)
+    with pytest.raises(UserError, match=problem):
+        run_task(compose(*args, "tensorboard=false"), out_dir=tmp_path / "run")
+    assert not [p for p in (tmp_path / "run").rglob("*") if p.is_file()]
+
+
+def test_mesh_without_surface_and_arrays_without_numbers(tmp_path):
+    from l3d_app.data.box_images import load_box_images
+    from l3d_app.geometry.mesh_io import load_mesh
+
+    (tmp_path / "point.obj").write_text("v 0 0 0\nv 0 0 0\nv 0 0 0\nf 1 2 3\n")
+    (tmp_path / "line.obj").write_text("v 0 0 0\nv 1 1 1\nv 2 2 2\nf 1 2 3\n")
+    for name in ("point.obj", "line.obj"):
+        with pytest.raises(UserError, match="has no surface: every face has zero area"):
+            load_mesh(tmp_path / name)
+    (tmp_path / "one.obj").write_text("v 0 0 0\nv 0 0 0\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 4 5\n")
+    assert load_mesh(tmp_path / "one.obj").faces.shape == (2, 3)      # one face of area 0.5 is a surface
+    np.savez(tmp_path / "str.npz", verts=np.array([["a", "b", "c"]] * 4))
+    with pytest.raises(UserError, match=r"str.npz:verts must hold numbers, got an array of dtype <U1"):
+        bunny_points(str(tmp_path / "str.npz"))
+    (tmp_path / "box").mkdir()
+    for i in range(4):
+        np.save(tmp_path / "box" / f"box_{i}.npy", np.full((256, 256, 3), "x"))
+    with pytest.raises(UserError, match="box_0.npy must hold numbers"):
+        load_box_images(str(tmp_path / "box"))
+
+
+def test_neural_sdf_needs_points_with_extent_and_both_splits(compose, tmp_path):
+    for points, problem in [([[0.0, 0.0, 0.0]], "at least 2 points, got 1"),
+                            ([[1.0, 2.0, 3.0]] * 5, "all its points coincide")]:
+        np.savez(tmp_path / "cloud.npz", verts=np.array(points))
+        with pytest.raises(UserError, match=problem):
+            run_task(compose("task=neural_sdf", "data=bunny", f"data.path={tmp_path / 'cloud.npz'}", "data.stride=1",
+                             "tensorboard=false"), out_dir=tmp_path / "run")
+    np.savez(tmp_path / "cloud.npz", verts=np.random.default_rng(0).normal(size=(4, 3)))
+    with pytest.raises(UserError, match="val_fraction=0.1 of 4 points holds out 0"):
+        run_task(compose("task=neural_sdf", "data=bunny", f"data.path={tmp_path / 'cloud.npz'}", "data.stride=1",
+                         "val_fraction=0.1", "tensorboard=false"), out_dir=tmp_path / "run")
+
+
+def test_an_unreadable_pointnet_checkpoint_is_named(tmp_path):
+    from l3d_app.tasks.point_common import load_model
+
+    (tmp_path / "best.pt").write_text("garbage\n")
+    with pytest.raises(UserError, match=r"best.pt is not a readable pointnet best.pt checkpoint \("):
+        load_model(tmp_path / "best.pt", "cpu")

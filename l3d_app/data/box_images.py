@@ -15,7 +15,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from l3d_app.data.array_files import load_array_file
+from l3d_app.data.array_files import load_array_file, numeric_array
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras, from_pytorch3d, look_at_rotation
 from l3d_app.registry import DATASETS
@@ -73,7 +73,8 @@ def load_box_images(root: str, device: Optional[torch.device] = None) -> ImageSe
         if arr.shape != (BOX_IMAGE_SIZE, BOX_IMAGE_SIZE, 3):
             raise UserError(f"box image {path} has shape {tuple(arr.shape)}, "
                             f"expected ({BOX_IMAGE_SIZE}, {BOX_IMAGE_SIZE}, 3)")
-        if not np.isfinite(np.asarray(arr, dtype=np.float64)).all():
+        arr = numeric_array(arr, f"box image {path}")
+        if not np.isfinite(arr).all():
             raise UserError(f"box image {path} contains NaN or Inf")
-        images.append(torch.from_numpy(np.asarray(arr, dtype=np.float32)))
+        images.append(torch.from_numpy(arr))
     return ImageSet(torch.stack(images).to(device), box_cameras(device=device))

@@ -6,10 +6,9 @@
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
-from l3d_app.data.array_files import load_array_file
+from l3d_app.data.array_files import load_array_file, numeric_array
 from l3d_app.errors import UserError
 from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.registry import DATASETS
@@ -30,7 +29,7 @@ def bunny_points(path: str = None, key: str = "verts", stride: int = 2, center: 
     with load_array_file(file) as npz:
         if key not in npz:
             raise UserError(f"{file} has no key '{key}' (keys: {', '.join(npz.files)})")
-        pts = np.asarray(npz[key], dtype=np.float32)
+        pts = numeric_array(npz[key], f"{file}:{key}")
     if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] == 0:
         raise UserError(f"{file}:{key} must be an (N, 3) array, got {pts.shape}")
     p = torch.from_numpy(pts[:: max(1, int(stride))].copy())

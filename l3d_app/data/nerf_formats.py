@@ -34,7 +34,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from l3d_app.data.array_files import load_array_file
+from l3d_app.data.array_files import load_array_file, numeric_array
 from l3d_app.data.nerf_views import MultiViewData, background_rgb, carve_val
 from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
 from l3d_app.errors import UserError
@@ -185,7 +185,7 @@ def truck(root: str = "../shared/data/truck", test_indices: Sequence[int] = (33,
         pose_file = pose_dir / (f.stem + ".npy")
         if not pose_file.is_file():
             raise UserError(f"pose file missing: {pose_file}")
-        pose = np.asarray(load_array_file(pose_file, allow_pickle=False), dtype=np.float64).reshape(-1)
+        pose = numeric_array(load_array_file(pose_file, allow_pickle=False), str(pose_file), np.float64).reshape(-1)
         if pose.shape[0] != 16:
             raise UserError(f"{pose_file} must hold 16 values [R(9) T(3) F(2) C(2)], got {pose.shape[0]}")
         poses.append(pose)
@@ -210,7 +210,7 @@ def truck(root: str = "../shared/data/truck", test_indices: Sequence[int] = (33,
     pts_file = folder / "points" / "points_10000.npy"
     pts = None
     if pts_file.is_file():
-        raw_pts = np.asarray(load_array_file(pts_file, allow_pickle=False), dtype=np.float32)
+        raw_pts = numeric_array(load_array_file(pts_file, allow_pickle=False), str(pts_file))
         if raw_pts.ndim != 2 or raw_pts.shape[1] != 3 or raw_pts.shape[0] == 0:
             raise UserError(f"{pts_file} must hold an (N, 3) array of points, got shape {raw_pts.shape}")
         pts = torch.from_numpy(raw_pts)

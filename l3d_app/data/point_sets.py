@@ -29,7 +29,7 @@ from typing import List, Optional, Sequence
 import numpy as np
 import torch
 
-from l3d_app.data.array_files import load_array_file
+from l3d_app.data.array_files import load_array_file, numeric_array
 from l3d_app.data.val_split import carve_val
 from l3d_app.errors import UserError
 from l3d_app.registry import DATASETS
@@ -168,7 +168,7 @@ def course_pointcloud(root: str, kind: str = "cls", class_names: Optional[List[s
         limit = {"train": max_train, "test": max_test}[name] or len(pts)
         if int(limit) < 0:
             raise UserError(f"max_{name} must be >= 0 (0: all), got {limit}")
-        pts, lab = np.array(pts[:limit], dtype=np.float32), np.array(lab[:limit])
+        pts, lab = numeric_array(pts[:limit], str(data_path)), numeric_array(lab[:limit], str(label_path), lab.dtype)
         if pts.ndim != 3 or pts.shape[-1] != 3:
             raise UserError(f"{data_path} must hold (N, P, 3) points, got {pts.shape}")
         if not np.isfinite(pts).all():

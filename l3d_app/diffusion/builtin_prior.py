@@ -32,6 +32,7 @@ from l3d_app.errors import UserError
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.paths import resolve_path
 from l3d_app.runtime.random import rand, randint, randn
+from l3d_app.runtime.torch_files import read_torch_file
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "assets" / "builtin_prior.pt"
 FORMAT = "l3d_builtin_prior/1"
@@ -167,10 +168,7 @@ def load_builtin_prior(space: str = "pixel", checkpoint: Optional[os.PathLike] =
     if not path.exists():
         raise UserError(f"built-in prior checkpoint not found: {path} (make one with "
                         f"`python main.py task=train_prior` and pass prior.checkpoint=<run dir>/builtin_prior.pt)")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # noqa: BLE001 - any unreadable file is the user's input
-        raise UserError(f"cannot read built-in prior checkpoint {path}: {err}") from err
+    state = read_torch_file(path, "built-in prior checkpoint", weights_only=True)
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise UserError(f"{path} is not a built-in prior checkpoint (format {FORMAT})")
     if space not in state["spaces"]:

@@ -25,6 +25,7 @@ import torch
 from l3d_app.diffusion.prior import DiffusionPrior, PromptEmbedding
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras, look_at_cameras
+from l3d_app.runtime.config_types import config_floats
 
 VIEWS = ("front", "side", "back", "overhead", "bottom")
 DEFAULT_TEMPLATE = "{prompt}, {view} view"
@@ -100,28 +101,40 @@ class ViewPrompts:
         return PromptEmbedding(cond=cond, uncond=self.uncond)
 
 
+def check_orbit_ranges(distance: Sequence[float] = (3.0, 3.0), elevation: Sequence[float] = (-10.0, 60.0),
+                       azimuth: Sequence[float] = (0.0, 360.0), fov: Sequence[float] = (40.0, 40.0)
+                       ) -> Tuple[Tuple[float, float], ...]:
+    """The (lo, hi) ranges of :func:`sample_orbit_cameras` as float pairs, or :class:`UserError`:
+    each two numbers with lo <= hi, distances > 0, fields of view in (0, 180) degrees,
+    elevations strictly inside (-90, 90) degrees. Tasks call it before any work."""
+    pairs = []
+    for lo_hi, name in ((distance, "distance"), (elevation, "elevation"), (azimuth, "azimuth"), (fov, "fov")):
+        lo, hi = config_floats(lo_hi, f"{name} range [lo, hi]", 2)
+        if hi < lo:
+            raise UserError(f"{name} range must be [lo, hi] with lo <= hi, got {[lo, hi]}")
+        pairs.append((lo, hi))
+    (d_lo, _), (e_lo, e_hi), _, (f_lo, f_hi) = pairs
+    if d_lo <= 0 or not (0 < f_lo and f_hi < 180):
+        raise UserError("camera distances must be > 0 and fields of view in (0, 180) degrees")
+    if max(abs(e_lo), abs(e_hi)) >= 90:
+        raise UserError("camera elevations must lie strictly inside (-90, 90) degrees")
+    return tuple(pairs)
+
+
 def sample_orbit_cameras(n: int, image_size: int, generator: torch.Generator,
                          distance: Sequence[float] = (3.0, 3.0), elevation: Sequence[float] = (-10.0, 60.0),
                          azimuth: Sequence[float] = (0.0, 360.0), fov: Sequence[float] = (40.0, 40.0),
                          device=None) -> Tuple[Cameras, torch.Tensor, torch.Tensor]:
-    """``n`` cameras looking at the origin, each range (lo, hi) sampled uniformly.
+    """``n`` cameras looking at the origin, each range (lo, hi) sampled uniformly
+    (checked by :func:`check_orbit_ranges`).
 
     distance in world units, angles in degrees. Returns (cameras, azimuth (n,), elevation (n,)).
     """
-    def draw(lo_hi, name):
-        if len(lo_hi) != 2:
-            raise UserError(f"{name} must be a [lo, hi] range, got {list(lo_hi)}")
-        lo, hi = (float(v) for v in lo_hi)
-        if hi < lo:
-            raise UserError(f"{name} range must be [lo, hi] with lo <= hi, got {list(lo_hi)}")
+    def draw(lo_hi):
+        lo, hi = lo_hi
         u = torch.rand(n, generator=generator, device=generator.device).cpu()
         return lo + (hi - lo) * u
 
-    dist, elev, azim, fovs = (draw(r, k) for r, k in ((distance, "distance"), (elevation, "elevation"),
-                                                      (azimuth, "azimuth"), (fov, "fov")))
-    if float(dist.min()) <= 0 or not (0 < float(fovs.min()) and float(fovs.max()) < 180):
-        raise UserError("camera distances must be > 0 and fields of view in (0, 180) degrees")
-    if float(elev.abs().max()) >= 90:
-        raise UserError("camera elevations must lie strictly inside (-90, 90) degrees")
+    dist, elev, azim, fovs = (draw(r) for r in check_orbit_ranges(distance, elevation, azimuth, fov))
     cams = look_at_cameras(dist, elev, azim, fovs, int(image_size), device=None)
     return cams.to(device), azim, elev

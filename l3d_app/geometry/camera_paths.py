@@ -19,6 +19,7 @@ from l3d_app.geometry.cameras import Cameras, from_opengl_c2w, from_pytorch3d, l
 from l3d_app.geometry.pose_checks import check_rigid_poses
 from l3d_app.geometry.transforms import euler_xyz
 from l3d_app.registry import CAMERA_PATHS
+from l3d_app.runtime.config_types import config_floats
 
 
 def cameras_up(cams: Cameras) -> torch.Tensor:
@@ -100,9 +101,9 @@ def relative_camera(rotation_deg: Sequence[float] = (0.0, 0.0, 0.0),
     """
     if not 0 < fov < 180:
         raise UserError(f"fov must be in (0, 180) degrees, got {fov}")
-    r_rel = euler_xyz(rotation_deg)
+    r_rel = euler_xyz(config_floats(rotation_deg, "camera.rotation_deg", 3))
     t0 = torch.tensor([0.0, 0.0, float(base_distance)])
-    T = r_rel @ t0 + torch.as_tensor(translation, dtype=torch.float32)
+    T = r_rel @ t0 + torch.tensor(config_floats(translation, "camera.translation", 3))
     ndc_focal = 1.0 / math.tan(math.radians(fov) / 2)  # square image: NDC spans [-1, 1]
     return from_pytorch3d(r_rel, T, focal=ndc_focal, image_size=(image_size, image_size)).to(device)
 

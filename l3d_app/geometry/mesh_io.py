@@ -52,7 +52,8 @@ def load_mesh(path: PathLike, keep_vertex_order: bool = True, device=None) -> Me
         scene transforms applied.
     Raises:
         UserError: missing file, unsupported extension, or a file that is not a valid
-            triangle mesh (no faces, indices out of range, NaN vertices, garbage).
+            triangle mesh (no faces, indices out of range, NaN vertices, every face of zero
+            area, garbage).
     """
     path = Path(os.path.expanduser(str(path)))
     if not path.exists():
@@ -85,6 +86,10 @@ def _checked_mesh(path: Path, verts, faces, vert_colors=None, verts_uvs=None,
                         f"[0, {len(verts)}) (found {int(faces.min())}..{int(faces.max())})")
     if not np.isfinite(verts).all():
         raise UserError(f"mesh file {path} is malformed: vertices contain NaN or Inf")
+    tri = verts.astype(np.float64)[faces]                                     # (F, 3, 3)
+    if not np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).any():
+        raise UserError(f"mesh file {path} has no surface: every face has zero area "
+                        f"(its vertices coincide or lie on a line)")
 
     def t(x, dtype):
         return None if x is None else torch.as_tensor(np.ascontiguousarray(x), dtype=dtype)

@@ -53,8 +53,14 @@ def _check_pair(x: torch.Tensor, y: torch.Tensor, backend: str) -> None:
     _check(y, "y")
     if x.shape[1] != y.shape[1]:
         raise UserError(f"chamfer: point dimensions differ: {x.shape[1]} vs {y.shape[1]}")
+    require_backend(backend)
+
+
+def require_backend(backend: str) -> str:
+    """``backend`` if it is one of :data:`BACKENDS`, else :class:`UserError`."""
     if backend not in BACKENDS:
         raise UserError(f"chamfer: unknown backend '{backend}'. Known: {', '.join(BACKENDS)}")
+    return backend
 
 
 def _kdtree_nn(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

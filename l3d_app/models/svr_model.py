@@ -18,6 +18,7 @@ from l3d_app.models import svr_decoders, svr_pseudo  # noqa: F401  (register the
 from l3d_app.models.svr_encoder import ImageEncoder
 from l3d_app.registry import MODELS
 from l3d_app.runtime.files import atomic_path
+from l3d_app.runtime.torch_files import read_torch_file
 
 MODEL_FILE = "svr_model.pt"
 
@@ -62,10 +63,7 @@ def load_svr_model(path, device) -> Tuple[SVRModel, Dict[str, Any]]:
         p = p / MODEL_FILE
     if not p.is_file():
         raise UserError(f"svr model checkpoint not found: {p} (train one with task=svr_train)")
-    try:
-        meta = torch.load(p, map_location="cpu", weights_only=False)
-    except Exception as err:  # not a torch file, truncated, ...
-        raise UserError(f"cannot read svr model checkpoint {p}: {err}") from err
+    meta = read_torch_file(p, "svr model checkpoint")
     if not isinstance(meta, dict) or "decoder_cfg" not in meta:
         raise UserError(f"{p} is not an svr_train model file ({MODEL_FILE})")
     model = build_svr_model(meta["encoder_cfg"], meta["decoder_cfg"], meta["geometry"])

@@ -34,7 +34,6 @@ from __future__ import annotations
 import copy
 import math
 import os
-import pickle
 import signal
 import time
 from contextlib import contextmanager
@@ -49,6 +48,7 @@ from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.precision import autocast
 from l3d_app.runtime.progress import progress
+from l3d_app.runtime.torch_files import read_torch_file
 
 CHECKPOINT = "checkpoint.pt"
 
@@ -181,10 +181,7 @@ def save_checkpoint(path: Path, trainable: Trainable, step: int, generator: torc
 def read_checkpoint(path: Path) -> Dict[str, Any]:
     """The dict of a ``checkpoint.pt`` written by :func:`save_checkpoint` (on the CPU); a file
     that is not one (empty, truncated, another format, no ``trainable``) is a :class:`UserError`."""
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-    except (EOFError, RuntimeError, pickle.UnpicklingError, ValueError) as err:
-        raise UserError(f"{path} is not a readable checkpoint ({type(err).__name__}: {err})") from err
+    state = read_torch_file(path, "checkpoint")
     if not isinstance(state, dict) or "trainable" not in state:
         raise UserError(f"{path} is not a checkpoint of this app (no 'trainable' state)")
     return state

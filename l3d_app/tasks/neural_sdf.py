@@ -55,7 +55,11 @@ def neural_sdf(cfg, ctx) -> dict:
     cloud = DATASETS.build(cfg.data)
     points = cloud.points if isinstance(cloud, PointCloud) else torch.as_tensor(cloud)
     points = points.float().to(ctx.device)
+    if points.shape[0] < 2:
+        raise UserError(f"neural_sdf needs a point cloud of at least 2 points, got {points.shape[0]}")
     lo, hi = points.min(0).values, points.max(0).values
+    if not float((hi - lo).max()) > 0:
+        raise UserError("neural_sdf needs a point cloud with extent: all its points coincide")
     pad = float(cfg.bounds_padding) * float((hi - lo).max())
     lo, hi = lo - pad, hi + pad
     box = (lo.tolist(), hi.tolist())
@@ -67,6 +71,9 @@ def neural_sdf(cfg, ctx) -> dict:
     n_val = int(round(float(cfg.val_fraction) * points.shape[0]))
     perm = randperm(points.shape[0], ctx.generator, ctx.device)
     val_points, train_points = points[perm[:n_val]], points[perm[n_val:]]
+    if (float(cfg.val_fraction) > 0 and n_val == 0) or n_val == points.shape[0]:
+        raise UserError(f"val_fraction={cfg.val_fraction} of {points.shape[0]} points holds out {n_val}: "
+                        f"both the training and the validation points must be non-empty (val_fraction=0: no validation)")
     n = int(cfg.batch_points)
     centre = 0.5 * (lo + hi)
 
@@ -91,7 +98,8 @@ def neural_sdf(cfg, ctx) -> dict:
                        checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="neural_sdf")
     metrics: Dict[str, float] = {"iters": result.step, "n_params": sum(p.numel() for p in net.parameters()),
                                  "n_points": int(points.shape[0]),
-                                 "val_surface_abs": round(result.metrics.get("surface_abs", float("nan")), 6),
+                                 "val_surface_abs": (round(result.metrics["surface_abs"], 6)          # None: no validation
+                                                     if "surface_abs" in result.metrics else None),
                                  "history": result.history_rows()}
     sdf = net.sdf
     fmt = str(cfg.mesh_format).lower().lstrip(".")

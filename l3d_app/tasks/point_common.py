@@ -47,6 +47,7 @@ from l3d_app.render.palette import palette
 from l3d_app.runtime import distributed
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.media import save_gif, save_png
+from l3d_app.runtime.torch_files import read_torch_file
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import require_nonnegative, require_positive
 
@@ -84,10 +85,16 @@ def gather_points(points: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return torch.gather(points, 1, index[..., None].expand(-1, -1, points.shape[-1]))
 
 
-def rotations(axis: str, degrees: Sequence[float]) -> torch.Tensor:
-    """(B, 3, 3) rotations by ``degrees[b]`` about the world ``axis`` ('x', 'y' or 'z')."""
+def require_axis(axis) -> str:
+    """``axis`` as 'x', 'y' or 'z', or :class:`UserError`."""
     if axis not in ("x", "y", "z"):
         raise UserError(f"rotation axis must be x, y or z, got {axis!r}")
+    return axis
+
+
+def rotations(axis: str, degrees: Sequence[float]) -> torch.Tensor:
+    """(B, 3, 3) rotations by ``degrees[b]`` about the world ``axis`` ('x', 'y' or 'z')."""
+    require_axis(axis)
     return torch.stack([axis_rotation(axis, float(d)) for d in degrees])
 
 
@@ -118,8 +125,8 @@ def load_model(path, device) -> Tuple[torch.nn.Module, Dict[str, Any]]:
     path = Path(str(path)).expanduser()
     if not path.is_file():
         raise UserError(f"model checkpoint not found: {path}")
-    meta = torch.load(path, map_location="cpu", weights_only=False)
-    if "model_cfg" not in meta:
+    meta = read_torch_file(path, "pointnet best.pt checkpoint")
+    if not isinstance(meta, dict) or "model_cfg" not in meta:
         raise UserError(f"{path} is not a pointnet_cls/pointnet_seg best.pt checkpoint")
     model = build_model(meta["model_cfg"], meta["kind"], len(meta["names"]), device)
     model.load_state_dict(meta.pop("state"))
@@ -181,6 +188,8 @@ def check_train_knobs(cfg) -> None:
                                            "regulariser_weight", "weight_decay", "num_vis", "vis_points") if k in cfg))
     if cfg.get("iters") is None:
         require_positive(cfg, "epochs")
+    if cfg.augment_rotation:
+        require_axis(cfg.rotation_axis)
 
 
 def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Dist] = None):
@@ -368,6 +377,7 @@ def per_label_accuracy(ev: Evaluation, names: List[str], kind: str) -> Dict[str,
 
 def run_point_task(cfg, ctx, kind: str) -> Dict[str, Any]:
     """pointnet_cls / pointnet_seg: train (or resume), evaluate, visualise; the metrics."""
+    check_train_knobs(cfg)
     dist = distributed.setup(ctx.device)
     try:
         ctx.device = distributed.device_for(dist, ctx.device)

@@ -29,10 +29,11 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.registry import TASKS
+from l3d_app.runtime.config_types import config_floats
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.seed import seed_everything
-from l3d_app.tasks.point_common import evaluate, fit, load_data, load_model, rotations
+from l3d_app.tasks.point_common import evaluate, fit, load_data, load_model, require_axis, rotations
 
 
 def _table(title: str, header: str, rows: Dict[Any, float]) -> str:
@@ -65,7 +66,8 @@ def _model_for(cfg, ctx, kind: str):
 @TASKS.register("pointnet_robustness")
 def pointnet_robustness(cfg, ctx) -> dict:
     """Rotation and point-count tables for a classifier and a segmenter (see module doc)."""
-    degrees: List[float] = [float(d) for d in cfg.rotation_degrees]
+    require_axis(cfg.rotation_axis)
+    degrees: List[float] = config_floats(cfg.rotation_degrees, "rotation_degrees")
     counts: List[int] = [int(n) for n in cfg.num_points_list]
     if not degrees or not counts or min(counts) < 1:
         raise UserError(f"rotation_degrees and num_points_list must be non-empty, the counts >= 1; got "

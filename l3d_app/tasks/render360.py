@@ -34,19 +34,20 @@ def build_scene(cfg, device):
 def render360(cfg, ctx) -> dict:
     """Render the camera path's views; write turntable.gif (+ first frame PNG); log frames."""
     require_positive(cfg, "image_size", "num_frames", "fps", "distance", "fov", "batch_frames")
+    beside = bool(cfg.get("points_beside", False))
+    if beside:
+        require_positive(cfg, "points_beside_samples")
+    cams = CAMERA_PATHS.build(cfg.camera, device=ctx.device)
     scene = build_scene(cfg, ctx.device)
     is_mesh = isinstance(scene, Mesh)
+    if beside and not is_mesh:
+        raise UserError("points_beside shows a mesh's sampled points; this data source is a point cloud")
     renderer = RENDERERS.build(cfg.renderer if is_mesh else cfg.point_renderer)
-    cams = CAMERA_PATHS.build(cfg.camera, device=ctx.device)
     with ctx.stopwatch.stage("render"):
         out = render_frames(renderer, scene, cams, int(cfg.batch_frames), desc="render360")
     seconds = ctx.stopwatch.stages["render"]
     frames = out["image"]
-    beside = bool(cfg.get("points_beside", False))
     if beside:
-        if not is_mesh:
-            raise UserError("points_beside shows a mesh's sampled points; this data source is a point cloud")
-        require_positive(cfg, "points_beside_samples")
         cloud = sample_points_on_mesh(scene.to("cpu"), int(cfg.points_beside_samples), ctx.generator,  # CPU draws
                                       return_colors=scene.vert_colors is not None or scene.has_texture)
         cloud = cloud.to(device=ctx.device)

@@ -26,7 +26,7 @@ from typing import Dict
 
 import torch
 
-from l3d_app.diffusion.view_prompts import sample_orbit_cameras
+from l3d_app.diffusion.view_prompts import check_orbit_ranges, sample_orbit_cameras
 from l3d_app.errors import UserError
 from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.mesh import Mesh
@@ -47,6 +47,7 @@ __all__ = ["sds_mesh", "load_prior", "score_frames", "score_metrics"]  # the las
 def sds_mesh(cfg, ctx) -> dict:
     """Optimise the texture field with SDS; score turntables before and after; write gif/metrics."""
     require_positive(cfg, "iters", "lr", "batch_views", "num_frames", "fps", "eval_every", "batch_frames")
+    check_orbit_ranges(distance=cfg.distance_range, elevation=cfg.elevation_range, fov=cfg.fov_range)
     mesh = DATASETS.build(cfg.data, device=ctx.device)
     if not isinstance(mesh, Mesh):
         raise UserError("sds_mesh needs a mesh data source (data=cube, data=mesh data.path=FILE, ...)")

@@ -54,7 +54,7 @@ from typing import Dict
 import torch
 
 
-from l3d_app.diffusion.view_prompts import VIEWS, ViewPrompts, sample_orbit_cameras
+from l3d_app.diffusion.view_prompts import VIEWS, ViewPrompts, check_orbit_ranges, sample_orbit_cameras
 from l3d_app.errors import UserError
 from l3d_app.diffusion.registry import PRIORS
 from l3d_app.geometry.camera_paths import turntable
@@ -112,6 +112,7 @@ def sds_nerf(cfg, ctx) -> dict:
     render_kw = dict(n_samples=int(cfg.n_samples), background=bg, ambient=float(cfg.ambient),
                      normals_fn=density_normals, penalty_fn=orientation_penalty)
     ranges = {k: list(cfg[k]) for k in ("distance_range", "elevation_range", "fov_range")}
+    check_orbit_ranges(distance=ranges["distance_range"], elevation=ranges["elevation_range"], fov=ranges["fov_range"])
     lam_e, lam_o = float(cfg.lambda_entropy), float(cfg.lambda_orient)
     opt, scheds = build_optimizer(cfg.optim, field.parameters(), int(cfg.iters))
     sampler = SAMPLERS.build(cfg.sampler, scene_box=SCENE_BOX).to(ctx.device)

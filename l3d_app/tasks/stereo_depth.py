@@ -20,6 +20,7 @@ from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.metrics.stereo_error import binned_rmse, noisy_depth, simulate_depth_error
 from l3d_app.registry import DATASETS, RENDERERS, TASKS
 from l3d_app.render.diagnostics import depth_colormap
+from l3d_app.runtime.config_types import config_floats
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.plots import line_plot
 from l3d_app.tasks.common import require_positive
@@ -50,9 +51,9 @@ def _table(rows) -> str:
 def stereo_depth(cfg, ctx) -> dict:
     """Render the depth, simulate the rig, write pictures, table and plot."""
     require_positive(cfg, "image_size", "distance", "fov", "baseline", "sigma_px", "trials")
-    if cfg.get("focal_px") is not None and not float(cfg.focal_px) > 0:
-        raise UserError(f"focal_px must be a positive number of pixels or null (the camera's), got {cfg.focal_px!r}")
-    sweep = {k: [float(v) for v in cfg.sweep[k]] for k in ("baselines", "focal_scales", "sigmas_px")}
+    if cfg.get("focal_px") is not None:          # null: the camera's
+        require_positive(cfg, "focal_px")
+    sweep = {k: config_floats(cfg.sweep[k], f"sweep.{k}") for k in ("baselines", "focal_scales", "sigmas_px")}
     if not all(sweep.values()) or min(sweep["baselines"] + sweep["focal_scales"]) <= 0 or min(sweep["sigmas_px"]) < 0:
         raise UserError(f"sweep lists must be non-empty, baselines and focal_scales > 0, sigmas_px >= 0; got {sweep}")
     scene = DATASETS.build(cfg.data, device=ctx.device)

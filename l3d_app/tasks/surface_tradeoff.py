@@ -28,7 +28,7 @@ from l3d_app.geometry.marching_cubes import sdf_to_mesh
 from l3d_app.geometry.parametric import torus_points
 from l3d_app.geometry.sdf import Torus
 from l3d_app.geometry.sampling import sample_points_on_mesh
-from l3d_app.metrics.chamfer import chamfer_distance
+from l3d_app.metrics.chamfer import chamfer_distance, require_backend
 from l3d_app.registry import TASKS
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.progress import progress
@@ -75,7 +75,7 @@ def surface_tradeoff(cfg, ctx) -> dict:
     n_ref, n_mesh = int(cfg.reference_samples), int(cfg.mesh_samples)
     if n_ref <= 0 or n_mesh <= 0:
         raise UserError("reference_samples and mesh_samples must be positive")
-    backend = str(cfg.chamfer_backend)
+    backend = require_backend(str(cfg.chamfer_backend))
     seed = int(cfg.get("seed", 0))
 
     sdf = Torus(R, r)
