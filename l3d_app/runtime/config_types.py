@@ -131,7 +131,6 @@ def config_floats(value: Any, key: str, length: Optional[int] = None) -> List[fl
     """
     items = OmegaConf.to_container(value) if OmegaConf.is_list(value) else value
     shape = f"a list of {length} numbers" if length is not None else "a list of numbers"
-    if not isinstance(items, (list, tuple)) or (length is not None and len(items) != length) or not all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) for v in items):
+    if not _is_number_list(items, allow_empty=True) or (length is not None and len(items) != length):
         raise UserError(f"{key} must be {shape}, got {_shown(value if items is None else items)}")
     return [float(v) for v in items]
