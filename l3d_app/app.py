@@ -24,13 +24,13 @@ from omegaconf.errors import OmegaConfBaseException
 
 from l3d_app.errors import UserError
 from l3d_app.registry import TASKS
-from l3d_app.runtime.config_types import check_command_line_types
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.device import resolve_device
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.precision import check_precision
 from l3d_app.runtime.seed import seed_everything
 from l3d_app.tasks.common import require_run_keys
+from l3d_app.tasks.override_common import check_command_line_types
 
 
 def run(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]:

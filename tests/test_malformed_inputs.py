@@ -301,6 +301,26 @@ def test_svr_eval_view_outside_the_views_per_object(compose, tmp_path):
     (("task=sds_mesh", "distance_range=[8]"), r"distance range \[lo, hi\] must be a list of 2 numbers, got \[8\]"),
     (("task=sds_mesh", "elevation_range=[0,95]"), r"strictly inside \(-90, 90\)"),
     (("task=sds_nerf", "fov_range=[50,30]"), "fov range must be"),
+    # a third audit (2026-11-27): string and list knobs
+    (("task=render360", "point_renderer.radius_units=bogus"), "unknown radius_units 'bogus'"),   # renderer unused by mesh data
+    (("task=render360", "light_direction=[1,2]"), r"light_direction must be a list of 3 numbers, got \[1, 2\]"),
+    (("task=render360", "point_lights=[1,2,3]"), r"point_lights must be a list of \[x, y, z\] positions"),
+    (("task=fit_mesh", "renderer.shading=bogus"), "unknown shading 'bogus'"),                   # was: after training
+    (("task=fit_point", "camera.name=bogus"), "unknown camera path 'bogus'"),
+    (("task=pointnet_cls", "rotation_axis=bogus"), "rotation axis must be x, y or z"),          # augment_rotation off
+    (("task=pointnet_cls", "num_vis=1", "point_renderer.radius_units=bogus"), "unknown radius_units"),
+    (("task=gs_render", "ply=none.ply", "depth_cmap=bogus"), "unknown colormap 'bogus'"),
+    (("task=gs_render", "ply=none.ply", "up=[0,1]"), "up must be a list of 3 numbers"),
+    (("task=gs_render", "ply=none.ply", "depth_range=[7,5]"), "far > near"),
+    (("task=render_path", "checkpoint=none", "formats=[]"), "neither empty"),
+    (("task=render_path", "checkpoint=none", "formats=5"), "formats must be a name or a list of names, got 5"),
+    (("task=render_path", "ply=none.ply", "background=[1,2]"), "background must be a list of 3 numbers"),
+    (("task=box", "mode=render", "render_size=[]"), "render_size must be a list of 3 numbers"),
+    (("task=box", "true_center=[1,2]"), "true_center must be a list of 3 numbers"),
+    (("task=box", "mode=bogus"), "box mode must be fit or render"),
+    (("task=pca_normals", "view.at=[0,1]"), "view.at must be a list of 3 numbers"),
+    (("task=sds_nerf", "background=[1,2]"), "background must be a list of 3 numbers"),
+    (("task=volsdf", "mesh_formats=5"), "mesh_formats must be a name or a list of names"),
 ])
 def test_knobs_checked_before_the_data_is_built(compose, tmp_path, monkeypatch, args, problem):
     """A second audit (2026-11-27) found these checked only after rendering, loading or training had started."""
@@ -357,3 +377,28 @@ def test_an_unreadable_pointnet_checkpoint_is_named(tmp_path):
     (tmp_path / "best.pt").write_text("garbage\n")
     with pytest.raises(UserError, match=r"best.pt is not a readable pointnet best.pt checkpoint \("):
         load_model(tmp_path / "best.pt", "cpu")
+
+
+@pytest.mark.parametrize("args,problem", [
+    (("task=train_nerf", "data.scene_box=[[1,2],[3,4]]"), r"data.scene_box must be \[\[x, y, z\] min, \[x, y, z\] max\]"),
+    (("task=train_nerf", "data.elevation_range=[5]"), "elevation_range must be a list of 2 numbers"),
+    (("task=volsdf", "sampler.anchor_window=[1]"), "anchor_window must be a list of 2 numbers"),
+    (("task=pointnet_seg", "model=dgcnn", "model.widths=[]"), "dgcnn widths need >= 1 positive entry"),
+    (("task=render360", "data=superquadric_parametric", "data.exponents=[1]"), "exponents must be a list of 2 numbers"),
+])
+def test_list_knobs_of_the_data_and_models_are_named(compose, tmp_path, args, problem):
+    with pytest.raises(UserError, match=problem):
+        run_task(compose(*args, "tensorboard=false"), out_dir=tmp_path / "run")
+    assert not [p for p in (tmp_path / "run").rglob("*") if p.is_file()]
+
+
+def test_a_bare_name_is_a_list_of_one_never_its_letters():
+    from l3d_app.runtime.config_values import config_rows, config_words
+
+    assert config_words("ply", "mesh_formats") == ["ply"]
+    assert config_words(["ply", "obj"], "mesh_formats") == ["ply", "obj"]
+    with pytest.raises(UserError, match="mesh_formats must be a name or a list of names, got \\[1\\]"):
+        config_words([1], "mesh_formats")
+    assert config_rows([[0, 0, 1], [1, 2, 3]], "point_lights", None, 3) == [[0.0, 0.0, 1.0], [1.0, 2.0, 3.0]]
+    with pytest.raises(UserError, match="box must be a list of 2 lists of 3 numbers"):
+        config_rows([[0, 0, 1]], "box", 2, 3)

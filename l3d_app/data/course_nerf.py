@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from l3d_app.data.nerf_formats import _read_image, _to_float_rgb
-from l3d_app.data.nerf_views import MultiViewData, background_rgb, carve_val
+from l3d_app.data.nerf_views import MultiViewData, background_rgb, carve_val, scene_box_tensor
 from l3d_app.geometry.pose_checks import check_rigid_poses
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import from_opengl_c2w, from_pytorch3d
@@ -71,7 +71,7 @@ def tiny_nerf(path: str = None, n_train: int = 100, val_every: int = 10, backgro
         imgs = imgs[..., :3] * imgs[..., 3:] + bg * (1 - imgs[..., 3:])
     cams = from_opengl_c2w(c2w[:, :3], focal, focal, W / 2.0, H / 2.0, W, H).to(dtype=torch.float32)
     train, val = carve_val(torch.arange(k), int(val_every))
-    box = torch.tensor(scene_box, dtype=torch.float32).reshape(2, 3)
+    box = scene_box_tensor(scene_box)
     data = MultiViewData(imgs.clamp(0, 1).contiguous(), cams, train, val, torch.arange(k, n), bg, box,
                          name=f"tiny_nerf:{file.stem}", up=torch.tensor([0.0, 0.0, 1.0]))
     return data if device is None else data.to(device)
@@ -123,6 +123,6 @@ def course_lego(root: str = None, scene: str = "lego", image_size: Optional[Sequ
     if len(split[0]) == 0:
         raise UserError(f"{pth}: the train split is empty")
     cams = from_pytorch3d(R, T, focal, pp, image_size=(H, W), in_ndc=True).to(dtype=torch.float32)
-    box = torch.tensor(scene_box, dtype=torch.float32).reshape(2, 3)
+    box = scene_box_tensor(scene_box)
     data = MultiViewData(images, cams, split[0], split[1], split[2], bg, box, name=f"course_lego:{scene}")
     return data if device is None else data.to(device)

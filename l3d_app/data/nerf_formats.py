@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from l3d_app.data.array_files import load_array_file, numeric_array
-from l3d_app.data.nerf_views import MultiViewData, background_rgb, carve_val
+from l3d_app.data.nerf_views import MultiViewData, background_rgb, carve_val, scene_box_tensor
 from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import from_opengl_c2w, from_pytorch3d, stack_cameras
@@ -153,7 +153,7 @@ def blender(root: str = None, background="white", downscale: int = 1,
         raise UserError(f"splits in {folder} have different image sizes")
     if not (folder / "transforms_val.json").is_file():
         splits["train"], splits["val"] = carve_val(splits["train"], int(val_every))
-    box = torch.tensor(scene_box, dtype=torch.float32).reshape(2, 3)
+    box = scene_box_tensor(scene_box)
     mesh = None
     if mesh_path:
         from l3d_app.geometry.mesh_io import load_mesh

@@ -30,6 +30,7 @@ from l3d_app.geometry.cameras import Cameras, look_at_cameras
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.transforms import euler_xyz
 from l3d_app.registry import DATASETS
+from l3d_app.runtime.config_values import config_floats, config_rows
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.paths import resolve_path
 
@@ -118,6 +119,11 @@ def carve_val(train: torch.Tensor, val_every: int) -> Tuple[torch.Tensor, torch.
     return train[~pick], train[pick]
 
 
+def scene_box_tensor(scene_box) -> torch.Tensor:
+    """The ``data.scene_box`` knob as a (2, 3) float32 tensor (min row, max row), or :class:`UserError`."""
+    return torch.tensor(config_rows(scene_box, "data.scene_box", 2, 3, "[[x, y, z] min, [x, y, z] max]"))
+
+
 def background_rgb(background) -> torch.Tensor:
     """'white' | 'black' | 3 numbers -> (3,) float tensor."""
     if isinstance(background, str):
@@ -186,7 +192,7 @@ def builtin_cameras(n_train: int, n_val: int, n_test: int, image_size: int, dist
     (default [-10, 70]: the plinth's underside is never seen), golden-angle azimuths. Val: a
     ring at 45 degrees. Test: a ring at 20 degrees, azimuths offset by half a step from 0.
     """
-    e_lo, e_hi = (float(e) for e in elevation_range)
+    e_lo, e_hi = config_floats(elevation_range, "elevation_range", 2)
     if not -90.0 <= e_lo < e_hi <= 90.0:
         raise UserError(f"elevation_range must be [low, high] degrees with -90 <= low < high <= 90, "
                         f"got {list(elevation_range)}")
@@ -235,7 +241,7 @@ def nerf_builtin(image_size: int = 64, n_train: int = 100, n_val: int = 4, n_tes
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(path) as tmp:
             torch.save({"images": images.contiguous(), "key": key}, tmp)
-    box = torch.tensor(scene_box, dtype=torch.float32).reshape(2, 3)
+    box = scene_box_tensor(scene_box)
     data = MultiViewData(images.float(), cams, tr, va, te, bg, box, name="nerf_builtin", mesh=nerf_scene(),
                          up=torch.tensor([0.0, 1.0, 0.0]))
     return data if device is None else data.to(device)

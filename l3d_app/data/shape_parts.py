@@ -46,6 +46,7 @@ from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.sampling import sample_surface
 from l3d_app.geometry.transforms import axis_rotation
 from l3d_app.registry import DATASETS
+from l3d_app.runtime.config_values import config_words
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.progress import progress
 
@@ -309,7 +310,7 @@ def shape_parts(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 200
         kind, device: accepted for a uniform data-source interface; both label kinds are
             always present and data stays on the CPU.
     """
-    classes = list(classes)
+    classes = config_words(classes, "data.classes")
     unknown = [c for c in classes if c not in CLASS_NAMES]
     if unknown or not classes:
         raise UserError(f"unknown shape_parts class {unknown or classes}; known: {', '.join(CLASS_NAMES)}")

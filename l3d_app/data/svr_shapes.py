@@ -51,6 +51,7 @@ from l3d_app.geometry.sampling import sample_surface
 from l3d_app.geometry.transforms import axis_rotation
 from l3d_app.geometry.voxels import voxel_centers
 from l3d_app.registry import DATASETS
+from l3d_app.runtime.config_values import config_words
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.paths import resolve_path
 from l3d_app.runtime.progress import progress
@@ -324,7 +325,7 @@ def svr_shapes(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 60, 
     touched. ``device`` is accepted for the uniform data-source interface; the data stays
     on the CPU.
     """
-    classes = list(classes)
+    classes = config_words(classes, "data.classes")
     knobs = {"classes": classes, "n": int(train_per_class) + int(test_per_class),
              "views_per_object": int(views_per_object), "image_size": int(image_size),
              "voxel_size": int(voxel_size), "num_points": int(num_points),

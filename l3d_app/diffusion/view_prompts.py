@@ -25,7 +25,7 @@ import torch
 from l3d_app.diffusion.prior import DiffusionPrior, PromptEmbedding
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras, look_at_cameras
-from l3d_app.runtime.config_types import config_floats
+from l3d_app.runtime.config_values import config_floats
 
 VIEWS = ("front", "side", "back", "overhead", "bottom")
 DEFAULT_TEMPLATE = "{prompt}, {view} view"

@@ -19,7 +19,7 @@ from l3d_app.geometry.cameras import Cameras, from_opengl_c2w, from_pytorch3d, l
 from l3d_app.geometry.pose_checks import check_rigid_poses
 from l3d_app.geometry.transforms import euler_xyz
 from l3d_app.registry import CAMERA_PATHS
-from l3d_app.runtime.config_types import config_floats
+from l3d_app.runtime.config_values import config_floats
 
 
 def cameras_up(cams: Cameras) -> torch.Tensor:

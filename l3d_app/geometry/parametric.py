@@ -21,6 +21,7 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.pointcloud import PointCloud
+from l3d_app.runtime.config_values import config_floats
 
 
 def _check_count(num_samples: int) -> int:
@@ -115,8 +116,8 @@ def superquadric_points(num_samples: int, radii: Sequence[float] = (0.8, 0.8, 0.
     Returns a PointCloud (N, 3) with normals and colours ``0.5 + 0.5 n``.
     """
     n = _check_count(num_samples)
-    a, b, c = (float(x) for x in radii)
-    e1, e2 = (float(e) for e in exponents)
+    a, b, c = config_floats(radii, "radii", 3)
+    e1, e2 = config_floats(exponents, "exponents", 2)
     if not (a > 0 and b > 0 and c > 0):
         raise UserError(f"superquadric radii must be positive, got {list(radii)}")
     if not (0 < e1 <= 4 and 0 < e2 <= 4):

@@ -84,6 +84,8 @@ class DGCNN(nn.Module):
         if int(k) < 1:
             raise UserError(f"dgcnn k must be >= 1, got {k}")
         self.task = task
+        if len(widths) < 1 or min(int(w) for w in widths) < 1:
+            raise UserError(f"dgcnn widths need >= 1 positive entry (one per EdgeConv), got {list(widths)}")
         dims = [3] + [int(w) for w in widths]
         self.convs = nn.ModuleList(EdgeConv(a, b, int(k)) for a, b in zip(dims[:-1], dims[1:]))
         local = sum(dims[1:])

@@ -10,7 +10,18 @@ from typing import Sequence
 
 import torch
 
+from l3d_app.errors import UserError
+
 COURSE_DEPTH_CMAP = "jet"       # the course colours depth with matplotlib's jet over a fixed range
+
+
+def require_colormap(name: str) -> str:
+    """``name`` if matplotlib knows the colormap, else :class:`UserError` (checked before rendering)."""
+    import matplotlib
+
+    if name not in matplotlib.colormaps:
+        raise UserError(f"unknown colormap {name!r}; matplotlib's include jet, viridis, turbo, magma, gray")
+    return name
 
 
 def colorize_depth(depth: torch.Tensor, lo: float, hi: float, mask: torch.Tensor = None,
@@ -21,7 +32,7 @@ def colorize_depth(depth: torch.Tensor, lo: float, hi: float, mask: torch.Tensor
     import matplotlib
 
     if not hi > lo:
-        raise ValueError(f"depth range needs hi > lo, got [{lo}, {hi}]")
+        raise UserError(f"depth range needs hi > lo, got [{lo}, {hi}]")
     x = ((depth.detach().float().cpu() - lo) / (hi - lo)).clamp(0, 1)
     rgb = torch.from_numpy(matplotlib.colormaps[cmap](x.numpy())[..., :3]).float()
     if mask is not None:

@@ -17,6 +17,7 @@ from l3d_app.geometry.mesh import Mesh
 from l3d_app.registry import RENDERERS
 from l3d_app.render.rasterize import project_vertices, rasterize_projected
 from l3d_app.render.shading import Lights, Material, interpolate_vertices, normalize, phong
+from l3d_app.runtime.config_values import config_floats, config_rows
 from l3d_app.geometry.textures import sample_texture_t
 
 SHADINGS = ("phong", "lambert", "flat", "unlit")
@@ -89,11 +90,10 @@ class MeshRenderer:
         self.shading, self.background = shading, tuple(float(c) for c in background)
         self.material = Material(ambient, diffuse, specular, float(shininess))
         self.light_direction = (None if light_direction is None
-                                else tuple(float(c) for c in light_direction))
+                                else tuple(config_floats(light_direction, "light_direction", 3)))
         self.light_color = tuple(float(c) for c in light_color)
-        self.point_lights = [tuple(map(float, p)) for p in (point_lights or [])]
-        if any(len(p) != 3 for p in self.point_lights):
-            raise ValueError(f"point_lights must be a list of [x, y, z] positions, got {list(point_lights)}")
+        self.point_lights = [tuple(p) for p in config_rows(point_lights or [], "point_lights", None, 3,
+                                                           "a list of [x, y, z] positions")]
         self.antialias, self.near = int(antialias), float(near)
         self.cull_backfaces = bool(cull_backfaces)
 

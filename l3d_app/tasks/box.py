@@ -41,8 +41,9 @@ from l3d_app.render.diagnostics import depth_colormap
 from l3d_app.render.evaluation import render_views
 from l3d_app.render.turntable import data_up, orbit_cameras, write_turntable
 from l3d_app.render.volume import render_rays_chunked
-from l3d_app.runtime.optim import build_optimizer
+from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.media import save_png
+from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.paths import resolve_path
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, train
@@ -53,17 +54,21 @@ from l3d_app.tasks.common import require_positive
 def box(cfg, ctx) -> dict:
     """Fit the box; write metrics (box_center, box_size, errors, psnr) and a turntable gif."""
     require_positive(cfg, "iters", "batch_rays", "lr", "n_samples", "beta", "eval_stride", "chunk")
-    if len(cfg.init_size) != 3 or min(float(v) for v in cfg.init_size) <= 0:
-        raise UserError(f"init_size must be three positive side lengths, got {list(cfg.init_size)}")
+    mode = str(cfg.mode)
+    if mode not in ("fit", "render"):
+        raise UserError(f"box mode must be fit or render, got '{cfg.mode}'")
+    center, size = ("render_center", "render_size") if mode == "render" else ("init_center", "init_size")
+    for key in (center, size, "true_center", "true_size"):
+        config_floats(cfg[key], key, 3)
+    if min(config_floats(cfg[size], size, 3)) <= 0:
+        raise UserError(f"{size} must be three positive side lengths, got {list(cfg[size])}")
     data = DATASETS.build({**cfg.data, "root": str(resolve_path(cfg.data.root))}, device=ctx.device)
     origins, dirs = camera_rays(data.cameras, normalize=True)            # (4, H, W, 3)
     target = data.images
     flat_o, flat_d, flat_rgb = origins.reshape(-1, 3), dirs.reshape(-1, 3), target.reshape(-1, 3)
     n_pix = flat_o.shape[0]
-    if str(cfg.mode) == "render":
+    if mode == "render":
         return _render_only(cfg, ctx, data, origins, dirs)
-    if str(cfg.mode) != "fit":
-        raise ValueError(f"box mode must be fit or render, got '{cfg.mode}'")
 
     model = SDFBox(cfg.init_center, cfg.init_size, alpha=float(cfg.alpha), beta=float(cfg.beta)).to(ctx.device)
     iters = int(cfg.iters)

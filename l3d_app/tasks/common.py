@@ -8,7 +8,9 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
+from l3d_app.registry import CAMERA_PATHS, RENDERERS
 from l3d_app.render.field_mesh import FIELD_MESH_FORMATS
+from l3d_app.runtime.config_values import config_words
 from l3d_app.runtime.progress import progress
 
 
@@ -49,7 +51,7 @@ def require_mesh_formats(cfg, key: str = "mesh_formats", allowed: Sequence[str] 
     """UserError unless ``cfg[key]`` is a non-empty list of formats in ``allowed`` (a single
     string for ``mesh_format``): checked before training, since the mesh is written after it."""
     value = cfg.get(key)
-    formats = [value] if isinstance(value, str) else list(value or [])
+    formats = config_words([] if value is None else value, key)
     bad = [f for f in formats if str(f).lower().lstrip(".") not in allowed]
     if not formats or bad:
         raise UserError(f"{key} must be {'one' if isinstance(value, str) else 'a non-empty list'} of "
@@ -60,6 +62,18 @@ RUN_KEYS_NONNEGATIVE = ("time_budget", "reserve", "gif_frames", "turntable_size"
 """Run and output knobs that many tasks share, where 0 means none / off / the default and a
 negative value means nothing."""
 RUN_KEYS_POSITIVE = ("fps",)
+
+
+def check_output_knobs(cfg) -> None:
+    """Build the renderers (``renderer``, ``point_renderer``) and the camera path (``camera``)
+    that ``cfg`` names, once, and drop them: a bad shading, radius unit, background or path
+    name fails now, not at the turntable after training (nor never, for the renderer a run's
+    data does not use)."""
+    for key in ("renderer", "point_renderer"):
+        if cfg.get(key) is not None:
+            RENDERERS.build(cfg[key])
+    if cfg.get("camera") is not None:
+        CAMERA_PATHS.build(cfg.camera)
 
 
 def require_run_keys(cfg) -> None:

@@ -14,7 +14,7 @@ from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.sampling import sample_points_on_mesh
 from l3d_app.registry import CAMERA_PATHS, DATASETS, RENDERERS
 from l3d_app.runtime.media import save_gif
-from l3d_app.tasks.common import render_frames, require_nonnegative, require_positive
+from l3d_app.tasks.common import check_output_knobs, render_frames, require_nonnegative, require_positive
 
 Shape = Union[Mesh, PointCloud, None]
 
@@ -52,6 +52,7 @@ def check_fit_knobs(cfg, *extra: str) -> None:
     """Positive sizes and counts (``extra``: the task's own); loss weights (``w_*``) and the final
     learning rate, where the task has them, >= 0 (a negative weight would maximise its loss)."""
     require_positive(cfg, "iters", "image_size", "num_frames", "fps", "batch_frames", *extra)
+    check_output_knobs(cfg)
     require_nonnegative(cfg, *(k for k in cfg if str(k).startswith("w_") or k == "lr_final"))
 
 

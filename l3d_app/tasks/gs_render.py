@@ -22,7 +22,8 @@ from l3d_app.geometry.gaussian_ply import load_gaussian_ply
 from l3d_app.models.gaussians import GaussianModel
 from l3d_app.registry import TASKS
 from l3d_app.render.gaussians import rasterize_gaussians
-from l3d_app.render.gaussians_panels import colorize_depth, side_by_side
+from l3d_app.render.gaussians_panels import colorize_depth, require_colormap, side_by_side
+from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.paths import resolve_path
 from l3d_app.tasks.common import require_positive
@@ -31,6 +32,11 @@ from l3d_app.tasks.common import require_positive
 @TASKS.register("gs_render")
 def gs_render(cfg, ctx) -> dict:
     require_positive(cfg, "num_frames", "image_size")
+    cmap = require_colormap(str(cfg.depth_cmap))
+    up, background = config_floats(cfg.up, "up", 3), config_floats(cfg.background, "background", 3)
+    depth_range = config_floats(cfg.depth_range, "depth_range", 2) if cfg.get("depth_range") else None
+    if depth_range and not depth_range[1] > depth_range[0]:
+        raise UserError(f"depth_range must be [near, far] with far > near, got {depth_range}")
     if not cfg.get("ply"):
         raise UserError("gs_render needs a file: add ply=FILE (a 3DGS point_cloud.ply)")
     path = resolve_path(str(cfg.ply))
@@ -42,21 +48,20 @@ def gs_render(cfg, ctx) -> dict:
         centre = (model.means * w[:, None]).sum(0) / w.sum().clamp_min(1e-12)
         radius = max(float((model.means - centre).norm(dim=-1).quantile(0.9)), 1e-6)
         dist = float(cfg.distance) if float(cfg.distance) > 0 else 2.5 * radius
-        lo, hi = (float(v) for v in cfg.depth_range) if cfg.get("depth_range") else (max(dist - radius, 0.0),
-                                                                                       dist + radius)
+        lo, hi = depth_range or (max(dist - radius, 0.0), dist + radius)
         n, size = int(cfg.num_frames), int(cfg.image_size)
         azim = torch.arange(n, dtype=torch.float32) * 360.0 / n
-        R, t = look_at(dist, float(cfg.elevation), azim, at=centre.cpu().tolist(), up=list(cfg.up))
+        R, t = look_at(dist, float(cfg.elevation), azim, at=centre.cpu().tolist(), up=up)
         f = size / 2 / torch.tan(torch.deg2rad(torch.tensor(float(cfg.fov) / 2)))
         cams = Cameras(R, t, f, f, size / 2, size / 2, size, size).to(ctx.device)
         t0 = time.perf_counter()
         outs = [rasterize_gaussians(model.means, model.log_scales, model.quats, model.opacity_logits, model.sh,
-                                    int(cfg.sh_degree), cams[i], list(cfg.background)) for i in range(n)]
+                                    int(cfg.sh_degree), cams[i], background) for i in range(n)]
         fps = n / max(time.perf_counter() - t0, 1e-9)
         frames = []
         for o in outs:
             mask = o["alpha"][0] > float(cfg.mask_threshold)
-            depth = colorize_depth(o["expected_depth"][0], lo, hi, mask=mask, cmap=str(cfg.depth_cmap))
+            depth = colorize_depth(o["expected_depth"][0], lo, hi, mask=mask, cmap=cmap)
             frames.append(side_by_side([o["color"][0], depth, mask.float()]))
     save_gif(ctx.path("turntable.gif"), torch.stack(frames), fps=float(cfg.fps))
     return {"n_gaussians": model.num, "frames_per_second": round(fps, 3), "depth_range": [round(lo, 4), round(hi, 4)]}

@@ -22,6 +22,7 @@ from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.surface_orientation import (CLASS_NAMES, classify_orientation, point_statistics,
                                                   unsigned_angle_deg)
 from l3d_app.registry import DATASETS, RENDERERS, TASKS
+from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.media import save_png
 from l3d_app.tasks.common import require_positive
 
@@ -32,6 +33,7 @@ CLASS_COLOURS = torch.tensor([[0.20, 0.40, 0.90], [0.95, 0.55, 0.10], [0.60, 0.6
 def pca_normals(cfg, ctx) -> dict:
     """Estimate, classify, score (when true normals exist), draw; return the statistics."""
     require_positive(cfg, "k", "tolerance_deg", "image_size")
+    view_at = config_floats(cfg.view.at, "view.at", 3)
     if int(cfg.k) < 3 or not float(cfg.tolerance_deg) < 45:
         raise UserError(f"need k >= 3 and tolerance_deg < 45, got k={cfg.k}, tolerance_deg={cfg.tolerance_deg}")
     if not (len(cfg.up) == 3 and any(float(v) != 0 for v in cfg.up)):
@@ -59,7 +61,7 @@ def pca_normals(cfg, ctx) -> dict:
                        **{f"true_fraction_{n}": round(float(c) / stats["count"], 5)
                           for n, c in zip(CLASS_NAMES, torch.bincount(truth.cpu(), minlength=3))})
     cams = look_at_cameras(float(cfg.view.distance), float(cfg.view.elevation), float(cfg.view.azimuth),
-                           float(cfg.view.fov), int(cfg.image_size), at=list(cfg.view.at), device=ctx.device)
+                           float(cfg.view.fov), int(cfg.image_size), at=view_at, device=ctx.device)
     renderer = RENDERERS.build(cfg.point_renderer)
     panels = [normals.abs(), CLASS_COLOURS.to(points.device)[classes]]
     if cloud.colors is not None:

@@ -49,7 +49,7 @@ from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.torch_files import read_torch_file
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import require_nonnegative, require_positive
+from l3d_app.tasks.common import check_output_knobs, require_nonnegative, require_positive
 
 BEST = "best.pt"
 
@@ -188,8 +188,8 @@ def check_train_knobs(cfg) -> None:
                                            "regulariser_weight", "weight_decay", "num_vis", "vis_points") if k in cfg))
     if cfg.get("iters") is None:
         require_positive(cfg, "epochs")
-    if cfg.augment_rotation:
-        require_axis(cfg.rotation_axis)
+    require_axis(cfg.rotation_axis)
+    check_output_knobs(cfg)
 
 
 def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Dist] = None):

@@ -29,7 +29,7 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.registry import TASKS
-from l3d_app.runtime.config_types import config_floats
+from l3d_app.runtime.config_values import config_floats, config_words
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.seed import seed_everything
@@ -72,7 +72,7 @@ def pointnet_robustness(cfg, ctx) -> dict:
     if not degrees or not counts or min(counts) < 1:
         raise UserError(f"rotation_degrees and num_points_list must be non-empty, the counts >= 1; got "
                         f"{degrees}, {counts}")
-    kinds = [str(k) for k in cfg.robust_kinds]
+    kinds = config_words(cfg.robust_kinds, "robust_kinds")
     if not kinds or any(k not in ("cls", "seg") for k in kinds):
         raise UserError(f"robust_kinds must list cls and/or seg, got {kinds}")
     metrics: Dict[str, Any] = {"rotation_axis": str(cfg.rotation_axis),

@@ -17,7 +17,7 @@ from l3d_app.geometry.mesh_colors import gradient_colors
 from l3d_app.geometry.sampling import sample_points_on_mesh
 from l3d_app.registry import CAMERA_PATHS, DATASETS, RENDERERS, TASKS
 from l3d_app.runtime.media import save_gif, save_png
-from l3d_app.tasks.common import render_frames, require_positive
+from l3d_app.tasks.common import check_output_knobs, render_frames, require_positive
 
 
 def build_scene(cfg, device):
@@ -37,6 +37,7 @@ def render360(cfg, ctx) -> dict:
     beside = bool(cfg.get("points_beside", False))
     if beside:
         require_positive(cfg, "points_beside_samples")
+    check_output_knobs(cfg)
     cams = CAMERA_PATHS.build(cfg.camera, device=ctx.device)
     scene = build_scene(cfg, ctx.device)
     is_mesh = isinstance(scene, Mesh)

@@ -21,7 +21,7 @@ The per-kind renderers below are thin adapters over the library's render functio
 from __future__ import annotations
 
 import time
-from typing import Callable, Dict, Optional
+from typing import Callable, Dict
 
 import numpy as np
 import torch
@@ -33,6 +33,7 @@ from l3d_app.geometry.camera_paths import (interpolate_cameras, orbit, read_came
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
+from l3d_app.runtime.config_values import config_floats, config_words
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.media import save_gif, to_uint8
 from l3d_app.runtime.paths import resolve_path
@@ -165,11 +166,11 @@ def make_path(cfg, data, ply_model=None) -> Cameras:
         means = ply_model.means.detach().cpu().double()
         centre = (means * w[:, None]).sum(0) / w.sum().clamp_min(1e-12)
         radius = 2.5 * float((means - centre).norm(dim=-1).quantile(0.9))
-        up = torch.tensor(list(cfg.up) if cfg.get("up") is not None else [0.0, 1.0, 0.0], dtype=torch.float64)
+        up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
         elev, fov, (H, W), start = 20.0, 50.0, (256, 256), None
         cams = None
     if cfg.get("up") is not None:
-        up = torch.tensor(list(cfg.up), dtype=torch.float64)
+        up = torch.tensor(config_floats(cfg.up, "up", 3), dtype=torch.float64)
     if int(cfg.image_size) > 0:
         H, W = int(cfg.image_size), max(1, int(round(int(cfg.image_size) * W / H)))
     el = float(cfg.elevation) if cfg.get("elevation") is not None else elev
@@ -226,10 +227,14 @@ def save_mp4(path, frames: torch.Tensor, fps: float) -> None:
 @TASKS.register("render_path")
 def render_path(cfg, ctx) -> dict:
     """Render the path's frames, write mp4 / gif / camera_path.json."""
-    panels = [str(p) for p in cfg.panels]
-    bad = [p for p in panels if p not in PANELS] + [f for f in cfg.formats if str(f) not in ("mp4", "gif")]
-    if bad or not panels:
-        raise UserError(f"panels must be from {list(PANELS)} and formats from ['mp4', 'gif'], got {bad or panels}")
+    panels, formats = config_words(cfg.panels, "panels"), config_words(cfg.formats, "formats")
+    bad = [p for p in panels if p not in PANELS] + [f for f in formats if f not in ("mp4", "gif")]
+    if bad or not panels or not formats:
+        raise UserError(f"panels must be from {list(PANELS)} and formats from ['mp4', 'gif'], neither empty; "
+                        f"got panels={panels}, formats={formats}")
+    if cfg.get("up") is not None:
+        config_floats(cfg.up, "up", 3)
+    background = config_floats(cfg.background, "background", 3)
     if int(cfg.num_frames) <= 0:
         raise UserError(f"num_frames must be positive, got {cfg.num_frames}")
     data, ply_model = None, None
@@ -241,7 +246,7 @@ def render_path(cfg, ctx) -> dict:
         if not ply.is_file():
             raise UserError(f"PLY file not found: {ply}")
         ply_model = GaussianModel(**load_gaussian_ply(ply)).to(ctx.device)
-        render, kind = _gaussian_renderer(ply_model, int(cfg.sh_degree), list(cfg.background)), "ply"
+        render, kind = _gaussian_renderer(ply_model, int(cfg.sh_degree), background), "ply"
     elif cfg.get("checkpoint"):
         render, data, kind = load_run(cfg.checkpoint, ctx.device, int(cfg.chunk))
     else:
@@ -257,7 +262,6 @@ def render_path(cfg, ctx) -> dict:
     if not all(bool(torch.isfinite(v).all()) for v in out.values()):
         raise UserError("the render produced non-finite values (a diverged checkpoint?)")
     frames = panel_frames(out, panels)
-    formats = [str(f) for f in cfg.formats]
     if "mp4" in formats:
         save_mp4(ctx.path("path.mp4"), frames, float(cfg.fps))
     if "gif" in formats:

@@ -67,6 +67,7 @@ from l3d_app.registry import MODELS, SAMPLERS, TASKS
 from l3d_app.render.evaluation import depth_picture
 from l3d_app.render.field_shading import (SCENE_BOX, SHADINGS, normals_as_latent, render_shaded_views,
                                           shading_sampler)
+from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import randn
@@ -92,6 +93,8 @@ def sds_nerf(cfg, ctx) -> dict:
         raise UserError(f"latent_iter_ratio must be in [0, 1], got {cfg.latent_iter_ratio}")
     if not 0.0 <= float(cfg.ambient) <= 1.0:
         raise UserError(f"ambient must be in [0, 1], got {cfg.ambient}")
+    check_orbit_ranges(distance=cfg.distance_range, elevation=cfg.elevation_range, fov=cfg.fov_range)
+    bg = config_floats(cfg.background, "background", 3)
     prior = PRIORS.build(cfg.prior, device=ctx.device)
     prompt = str(cfg.prompt)
     overrides = {str(k): str(v) for k, v in dict(cfg.get("view_prompts") or {}).items() if v}
@@ -108,11 +111,9 @@ def sds_nerf(cfg, ctx) -> dict:
     field = BlobField(base, float(cfg.blob_density), float(cfg.blob_radius)).to(ctx.device)
     n_params = sum(p.numel() for p in field.parameters())
     draw_shading = shading_sampler(dict(cfg.shading_probs))
-    bg = [float(c) for c in cfg.background]
     render_kw = dict(n_samples=int(cfg.n_samples), background=bg, ambient=float(cfg.ambient),
                      normals_fn=density_normals, penalty_fn=orientation_penalty)
     ranges = {k: list(cfg[k]) for k in ("distance_range", "elevation_range", "fov_range")}
-    check_orbit_ranges(distance=ranges["distance_range"], elevation=ranges["elevation_range"], fov=ranges["fov_range"])
     lam_e, lam_o = float(cfg.lambda_entropy), float(cfg.lambda_orient)
     opt, scheds = build_optimizer(cfg.optim, field.parameters(), int(cfg.iters))
     sampler = SAMPLERS.build(cfg.sampler, scene_box=SCENE_BOX).to(ctx.device)

@@ -29,6 +29,7 @@ from l3d_app.registry import DATASETS, MODELS, SAMPLERS, TASKS
 from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
 from l3d_app.render.radiance import render_field_rays
 from l3d_app.render.turntable import color_depth_frames
+from l3d_app.runtime.config_values import config_words
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.precision import maybe_compile
@@ -129,7 +130,7 @@ def train_nerf(cfg, ctx) -> dict:
                     save_field_mesh(mesh, ctx.path("mesh_uncut"), ["ply"])
                     mesh, metrics["mesh_culled_area"] = cull_to_training_views(mesh, data, box,
                                                                                int(cfg.mesh_resolution))
-                save_field_mesh(mesh, ctx.path("mesh"), list(cfg.mesh_formats))
+                save_field_mesh(mesh, ctx.path("mesh"), config_words(cfg.mesh_formats, "mesh_formats"))
             metrics["mesh_faces"] = 0 if mesh is None else int(mesh.num_faces)
         metrics["gif_frames"] = write_turntables(cfg, ctx, data,
                                                  {"turntable.gif": color_depth_frames(render_fn, int(cfg.chunk))})

@@ -98,6 +98,7 @@ from l3d_app.render.rgbd import true_depth_maps
 from l3d_app.render.sdf_volume import render_sdf_rays
 from l3d_app.render.sphere_tracing import render_sdf_shaded
 from l3d_app.render.turntable import color_depth_frames
+from l3d_app.runtime.config_values import config_words
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.optim import build_optimizer
@@ -337,7 +338,7 @@ def _surface_metrics(cfg, ctx, model, field_fn, box, data) -> Dict[str, float]:
     if bool(cfg.mesh_cull):              # what no training camera sees: free space, not a leftover
         save_field_mesh(mesh, ctx.path("mesh_uncut"), ["ply"])
         mesh, out["mesh_culled_area"] = cull_to_training_views(mesh, data, box, int(cfg.mesh_resolution))
-    save_field_mesh(mesh, ctx.path("mesh"), list(cfg.mesh_formats))
+    save_field_mesh(mesh, ctx.path("mesh"), config_words(cfg.mesh_formats, "mesh_formats"))
     out["mesh_faces"] = int(mesh.num_faces)
     truth = _ground_truth(cfg, data)
     if truth is not None:

@@ -6,6 +6,7 @@ from typing import Optional, Sequence
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.registry import SAMPLERS
 from l3d_app.render.densities import transition_width
 from l3d_app.render.estimators.base import Box, Estimator, Samples, segment_ends
@@ -14,6 +15,7 @@ from l3d_app.render.rendering import pack_samples
 from l3d_app.render.sdf_cache import SDFGridCache
 from l3d_app.render.samplers import sample_pdf, stratified_samples
 from l3d_app.render.volume import composite
+from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.random import rand
 
 
@@ -69,17 +71,17 @@ class SDFCacheProposal(Estimator):
         self._check_anchor(anchor, anchor if eval_anchor is None else eval_anchor, anchor_window, refine_evals,
                            anchor_when, n_fine, eval_n_fine)
         if min(int(n_coarse), int(n_fine), int(eval_n_coarse), int(eval_n_fine)) < 2:
-            raise ValueError(f"n_coarse, n_fine, eval_n_coarse and eval_n_fine must be >= 2, got {n_coarse}, "
+            raise UserError(f"n_coarse, n_fine, eval_n_coarse and eval_n_fine must be >= 2, got {n_coarse}, "
                              f"{n_fine}, {eval_n_coarse}, {eval_n_fine}")
         self.eval_n_coarse, self.eval_n_fine = int(eval_n_coarse), int(eval_n_fine)
         self._counts = (int(n_coarse), int(n_fine))
         if int(every) < 1:
-            raise ValueError(f"every must be >= 1, got {every}")
+            raise UserError(f"every must be >= 1, got {every}")
         if not 0.0 <= float(skip_opacity) < 1.0:
-            raise ValueError(f"skip_opacity must be in [0, 1), got {skip_opacity}")
+            raise UserError(f"skip_opacity must be in [0, 1), got {skip_opacity}")
         self.n_coarse, self.n_fine, self.every, self.padding = int(n_coarse), int(n_fine), int(every), float(padding)
         if not float(max_segment) > 0:
-            raise ValueError(f"max_segment must be > 0 (coarse spacings), got {max_segment}")
+            raise UserError(f"max_segment must be > 0 (coarse spacings), got {max_segment}")
         self.skip_opacity, self.max_segment = float(skip_opacity), float(max_segment)
         self._fine_fraction = 1.0
         self.cache = SDFGridCache(scene_box, int(resolution)) if int(resolution) > 1 else None
@@ -89,10 +91,10 @@ class SDFCacheProposal(Estimator):
 
     def _check_anchor(self, anchor, eval_anchor, window, refine_evals, when, n_fine, eval_n_fine) -> None:
         """Validate and keep the anchored samples' settings (step 5 of the class docstring)."""
-        lo, hi = (float(v) for v in window)
+        lo, hi = config_floats(window, "anchor_window", 2)
         if not (0 <= int(anchor) < int(n_fine) and 0 <= int(eval_anchor) < int(eval_n_fine) and lo < hi
                 and int(refine_evals) >= 2 and when in ("always", "narrow")):
-            raise ValueError(f"anchor (eval_anchor) must lie in [0, n_fine) ([0, eval_n_fine)), anchor_window be "
+            raise UserError(f"anchor (eval_anchor) must lie in [0, n_fine) ([0, eval_n_fine)), anchor_window be "
                              f"[low, high] with low < high, refine_evals >= 2 and anchor_when always or narrow, got "
                              f"{anchor} ({eval_anchor}), {list(window)}, {refine_evals}, {when!r}")
         self.anchor, self.eval_anchor, self.anchor_window = int(anchor), int(eval_anchor), (lo, hi)

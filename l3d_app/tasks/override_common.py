@@ -25,13 +25,9 @@ from typing import Any, Iterable, List, Optional
 from omegaconf import DictConfig, OmegaConf
 
 from l3d_app.errors import UserError
+from l3d_app.runtime.config_values import is_number_list, shown
 
 _MISSING = object()
-
-
-def _shown(value: Any) -> str:
-    """A value as the user typed it: ``true`` / ``false`` for bools, ``repr`` otherwise."""
-    return str(value).lower() if isinstance(value, bool) else repr(value)
 
 
 def value_type_error(key: str, default: Any, value: Any) -> Optional[str]:
@@ -39,26 +35,19 @@ def value_type_error(key: str, default: Any, value: Any) -> Optional[str]:
     if value is None or default is None:
         return None
     if isinstance(default, bool):
-        return None if isinstance(value, bool) else f"{key} must be true or false, got {_shown(value)}"
+        return None if isinstance(value, bool) else f"{key} must be true or false, got {shown(value)}"
     if isinstance(default, int):
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            return f"{key} must be an integer, got {_shown(value)}"
+            return f"{key} must be an integer, got {shown(value)}"
         if isinstance(value, float) and not value.is_integer():
-            return f"{key} must be an integer, got {_shown(value)}"
+            return f"{key} must be an integer, got {shown(value)}"
         return None
     if isinstance(default, float):
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            return f"{key} must be a number, got {_shown(value)}"
-    if _is_number_list(default) and not _is_number_list(value, allow_empty=True):
-        return f"{key} must be a list of numbers, got {_shown(value)}"
+            return f"{key} must be a number, got {shown(value)}"
+    if is_number_list(default) and not is_number_list(value, allow_empty=True):
+        return f"{key} must be a list of numbers, got {shown(value)}"
     return None
-
-
-def _is_number_list(value: Any, allow_empty: bool = False) -> bool:
-    """A list (or tuple) whose every entry is an int or a float (not a bool); non-empty unless
-    ``allow_empty``."""
-    return isinstance(value, (list, tuple)) and (allow_empty or len(value) > 0) and all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
 
 
 def _plain(value: Any) -> Any:
@@ -121,16 +110,3 @@ def check_command_line_types(cfg: DictConfig) -> None:
     errors = override_type_errors(cfg, defaults, keys)
     if errors:
         raise UserError(errors[0])
-
-
-def config_floats(value: Any, key: str, length: Optional[int] = None) -> List[float]:
-    """A config list of numbers as floats, or :class:`UserError` naming ``key``.
-
-    Args: value: the config value (a list, a ListConfig or a tuple); key: its name in the
-        message; length: the required number of entries (None: any).
-    """
-    items = OmegaConf.to_container(value) if OmegaConf.is_list(value) else value
-    shape = f"a list of {length} numbers" if length is not None else "a list of numbers"
-    if not _is_number_list(items, allow_empty=True) or (length is not None and len(items) != length):
-        raise UserError(f"{key} must be {shape}, got {_shown(value if items is None else items)}")
-    return [float(v) for v in items]
