@@ -25,11 +25,13 @@ from typing import Sequence, Tuple
 
 import torch
 
+from l3d_app.errors import UserError
+
 
 def _coeffs(dist: Sequence[float], like: torch.Tensor) -> torch.Tensor:
     d = torch.as_tensor(dist, dtype=like.dtype, device=like.device).reshape(-1)
     if d.numel() != 6:
-        raise ValueError(f"distortion must be 6 numbers (k1, k2, k3, k4, p1, p2), got {d.numel()}")
+        raise UserError(f"distortion must be 6 numbers (k1, k2, k3, k4, p1, p2), got {d.numel()}")
     return d
 
 

@@ -6,6 +6,7 @@ from typing import Tuple
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 
 
@@ -60,7 +61,7 @@ def supersampled_rays(cams: Cameras, factor: int, normalize: bool = True) -> Tup
     the mesh renderer's ``antialias`` makes images."""
     s = int(factor)
     if s < 1:
-        raise ValueError(f"supersampling factor must be >= 1, got {factor}")
+        raise UserError(f"supersampling factor must be >= 1, got {factor}")
     uv = pixel_centers(cams.height, cams.width, device=cams.device, dtype=cams.R.dtype)         # (H, W, 2)
     off = (torch.arange(s, device=cams.device, dtype=cams.R.dtype) + 0.5) / s - 0.5
     grid = torch.stack(torch.meshgrid(off, off, indexing="xy"), dim=-1).reshape(-1, 2)        # (s*s, 2)

@@ -11,6 +11,8 @@ from typing import Dict, Sequence
 
 import torch
 
+from l3d_app.errors import UserError
+
 HORIZONTAL, VERTICAL, OTHER = 0, 1, 2
 CLASS_NAMES = ("horizontal", "vertical", "other")
 
@@ -26,7 +28,7 @@ def classify_orientation(normals: torch.Tensor, up: Sequence[float] = (0.0, 1.0,
     - ``OTHER`` (2): neither (slanted or curved surfaces).
     """
     if not 0 < float(tolerance_deg) < 45:
-        raise ValueError(f"tolerance_deg must be in (0, 45), got {tolerance_deg}")
+        raise UserError(f"tolerance_deg must be in (0, 45), got {tolerance_deg}")
     u = torch.as_tensor(up, dtype=normals.dtype, device=normals.device)
     u = u / u.norm()
     c = (torch.nn.functional.normalize(normals, dim=-1) @ u).abs()

@@ -7,6 +7,8 @@ from typing import Sequence
 
 import torch
 
+from l3d_app.errors import UserError
+
 
 def axis_rotation(axis: str, degrees: float, dtype=torch.float32) -> torch.Tensor:
     """(3, 3) right-handed rotation by ``degrees`` about the world axis 'x', 'y' or 'z'."""
@@ -18,7 +20,7 @@ def axis_rotation(axis: str, degrees: float, dtype=torch.float32) -> torch.Tenso
         "z": [[c, -s, 0], [s, c, 0], [0, 0, 1]],
     }
     if axis not in mats:
-        raise ValueError(f"axis must be x, y or z, got {axis!r}")
+        raise UserError(f"axis must be x, y or z, got {axis!r}")
     return torch.tensor(mats[axis], dtype=dtype)
 
 

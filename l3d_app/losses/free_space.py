@@ -27,6 +27,8 @@ from typing import Optional
 
 import torch
 
+from l3d_app.errors import UserError
+
 
 def occupied_volume(sdf: torch.Tensor) -> torch.Tensor:
     """Scalar ``mean(max(0, -sdf))`` of SDF values (world units) at uniform box points."""
@@ -37,7 +39,7 @@ def occupied_fraction(sdf: torch.Tensor, softness: float) -> torch.Tensor:
     """Scalar ``mean(sigmoid(-sdf / softness))`` (unitless, in [0, 1]) of SDF values at uniform box
     points; ``softness`` > 0 in world units."""
     if not float(softness) > 0:
-        raise ValueError(f"softness must be > 0, got {softness}")
+        raise UserError(f"softness must be > 0, got {softness}")
     return torch.sigmoid(-sdf / float(softness)).mean()
 
 

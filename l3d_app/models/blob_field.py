@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import torch
 
+from l3d_app.errors import UserError
+
 
 class BlobField(torch.nn.Module):
     """``field`` with its density multiplied by ``exp(blob_density * exp(-|x|^2 / (2 r^2)))``.
@@ -14,7 +16,7 @@ class BlobField(torch.nn.Module):
     def __init__(self, field: torch.nn.Module, blob_density: float = 5.0, blob_radius: float = 0.5):
         super().__init__()
         if blob_radius <= 0:
-            raise ValueError(f"blob_radius must be > 0, got {blob_radius}")
+            raise UserError(f"blob_radius must be > 0, got {blob_radius}")
         self.field, self.blob_density, self.blob_radius = field, float(blob_density), float(blob_radius)
 
     def blob(self, points: torch.Tensor) -> torch.Tensor:

@@ -40,7 +40,7 @@ def farthest_point_sample(xyz: torch.Tensor, m: int) -> torch.Tensor:
     chosen so far (ties: the lowest index). ``m`` <= N."""
     B, N, _ = xyz.shape
     if not 0 < m <= N:
-        raise ValueError(f"farthest_point_sample needs 0 < m <= N={N}, got m={m}")
+        raise UserError(f"farthest_point_sample needs 0 < m <= N={N}, got m={m}")
     idx = torch.zeros(B, m, dtype=torch.long, device=xyz.device)
     nearest = torch.full((B, N), float("inf"), dtype=xyz.dtype, device=xyz.device)
     rows = torch.arange(B, device=xyz.device)

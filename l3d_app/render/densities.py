@@ -20,6 +20,7 @@ from typing import Optional, Union
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.registry import DENSITIES
 
 Scalar = Union[float, torch.Tensor]
@@ -133,14 +134,14 @@ class LaplaceDensity(torch.nn.Module):
                  along_ray_floor: float = 0.1):
         super().__init__()
         if quadrature not in ("left", "linear"):
-            raise ValueError(f"quadrature must be left or linear, got {quadrature!r}")
+            raise UserError(f"quadrature must be left or linear, got {quadrature!r}")
         if not 0.0 < float(along_ray_floor) <= 1.0:
-            raise ValueError(f"along_ray_floor must lie in (0, 1], got {along_ray_floor}")
+            raise UserError(f"along_ray_floor must lie in (0, 1], got {along_ray_floor}")
         self.quadrature, self.along_ray, self.along_ray_floor = quadrature, bool(along_ray), float(along_ray_floor)
         if not beta_init > beta_min >= 0:
-            raise ValueError(f"LaplaceDensity needs beta_init > beta_min >= 0, got {beta_init}, {beta_min}")
+            raise UserError(f"LaplaceDensity needs beta_init > beta_min >= 0, got {beta_init}, {beta_min}")
         if alpha is not None and not alpha > 0:
-            raise ValueError(f"alpha must be > 0 or None (1 / beta), got {alpha}")
+            raise UserError(f"alpha must be > 0 or None (1 / beta), got {alpha}")
         rho = torch.tensor(math.log(float(beta_init) - float(beta_min)))
         if learnable:
             self.rho = torch.nn.Parameter(rho)
@@ -152,7 +153,7 @@ class LaplaceDensity(torch.nn.Module):
     def set_beta(self, value: float) -> None:
         """Set beta (world units, > beta_min), e.g. from an annealing schedule."""
         if not value > self.beta_min:
-            raise ValueError(f"beta must be > beta_min = {self.beta_min}, got {value}")
+            raise UserError(f"beta must be > beta_min = {self.beta_min}, got {value}")
         self.rho.fill_(math.log(float(value) - self.beta_min))
 
     @property
@@ -239,12 +240,12 @@ class VolSDFDensity(LaplaceDensity):
                  anneal_fraction: float = 0.8, beta_min: float = 1e-3, alpha: Optional[float] = None,
                  quadrature: str = "left", along_ray: bool = False, along_ray_floor: float = 0.1):
         if mode not in ("anneal", "learnable", "fixed"):
-            raise ValueError(f"density mode must be anneal, learnable or fixed, got {mode!r}")
+            raise UserError(f"density mode must be anneal, learnable or fixed, got {mode!r}")
         if not 0 <= float(beta_min) < min(float(beta), float(beta_end)):
-            raise ValueError(f"beta_min must be in [0, min(beta, beta_end)), got {beta_min} "
+            raise UserError(f"beta_min must be in [0, min(beta, beta_end)), got {beta_min} "
                              f"(beta={beta}, beta_end={beta_end})")
         if not 0.0 <= float(anneal_fraction) <= 1.0:
-            raise ValueError(f"anneal_fraction must be in [0, 1], got {anneal_fraction}")
+            raise UserError(f"anneal_fraction must be in [0, 1], got {anneal_fraction}")
         super().__init__(float(beta), None if alpha is None else float(alpha), learnable=mode == "learnable",
                          beta_min=float(beta_min), quadrature=str(quadrature), along_ray=bool(along_ray),
                          along_ray_floor=float(along_ray_floor))

@@ -19,6 +19,7 @@ from typing import Optional, Tuple
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays, pixel_centers
 from l3d_app.render.samplers import stratified_samples
@@ -47,9 +48,9 @@ def ray_sample_points(cams: Cameras, near: float, far: float, n_samples: int,
     ``stride``-th pixel in each direction. Returns points (R * S, 3) and their t (R * S,).
     """
     if not 0 <= near < far:
-        raise ValueError(f"need 0 <= near < far, got near={near}, far={far}")
+        raise UserError(f"need 0 <= near < far, got near={near}, far={far}")
     if int(stride) < 1:
-        raise ValueError(f"stride must be >= 1, got {stride}")
+        raise UserError(f"stride must be >= 1, got {stride}")
     origins, dirs = camera_rays(cams[0], normalize=True)            # (1, H, W, 3)
     s = int(stride)
     o = origins[0, ::s, ::s].reshape(-1, 3)

@@ -16,6 +16,7 @@ from typing import Callable, Optional, Sequence, Tuple
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.render.rendering import radiance_fn, render_rays
 from l3d_app.render.samplers import ray_aabb
 from l3d_app.runtime.random import rand, randint
@@ -58,7 +59,7 @@ def near_surface_weight(sdf: torch.Tensor, width: float) -> torch.Tensor:
     derivative of VolSDF's ``Psi_beta(-f)`` in ``f`` at ``beta = width``, i.e. where an occupancy or
     density loss on free points has a gradient. A proposal for :meth:`FreeRays.sample_resampled`."""
     if not float(width) > 0:
-        raise ValueError(f"width must be > 0, got {width}")
+        raise UserError(f"width must be > 0, got {width}")
     return torch.exp(-sdf.abs() / float(width))
 
 
@@ -113,7 +114,7 @@ class FreeRays:
         draw's, and far below it where ``g`` lives on a small part of the free space).
         """
         if not 0.0 <= float(mix) < 1.0:
-            raise ValueError(f"mix must lie in [0, 1), got {mix}")
+            raise UserError(f"mix must lie in [0, 1), got {mix}")
         pts, length = self.sample(int(n) * int(candidates), generator, shorten)
         with torch.no_grad():
             w = proposal(pts).clamp_min(0.0) * length

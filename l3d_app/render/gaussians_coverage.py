@@ -16,6 +16,7 @@ import math
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.render.gaussians import project_gaussians
 
@@ -39,7 +40,7 @@ def shrink_to_coverage(means: torch.Tensor, log_scales: torch.Tensor, quats: tor
     already is). A few rounds aiming 1% below the bound, since the 0.3 px low-pass keeps
     areas from scaling exactly as f^2."""
     if max_coverage <= 0:
-        raise ValueError(f"max_coverage must be > 0, got {max_coverage}")
+        raise UserError(f"max_coverage must be > 0, got {max_coverage}")
     out = log_scales.clone()
     for _ in range(rounds):
         cov = float(screen_coverage(means, out.expand(-1, 3), quats, opacity, cams).mean())

@@ -16,6 +16,7 @@ from typing import Tuple
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.mesh_parts import submesh
@@ -28,7 +29,7 @@ def seen_faces(mesh: Mesh, cameras: Cameras, tolerance: float, scale: int = 4) -
     """(F,) bool: faces of ``mesh`` whose centroid at least one of ``cameras`` sees
     (``tolerance`` in world units: how far behind the mesh's own depth a centroid may lie)."""
     if not float(tolerance) > 0:
-        raise ValueError(f"tolerance must be > 0 (world units), got {tolerance}")
+        raise UserError(f"tolerance must be > 0 (world units), got {tolerance}")
     mesh = mesh.to("cpu")
     cameras = cameras.to("cpu")
     depth = true_depth_maps(mesh, cameras, scale=int(scale))                 # (B, sH, sW), +inf empty

@@ -24,6 +24,7 @@ from typing import Optional, Union
 import torch
 import torch.nn.functional as F
 
+from l3d_app.errors import UserError
 from l3d_app.registry import DENSITIES
 
 Scalar = Union[float, torch.Tensor]
@@ -87,13 +88,13 @@ class NeuSDensity(torch.nn.Module):
         super().__init__()
         mode = ("learnable" if learnable else "fixed") if mode is None else str(mode)
         if mode not in ("fixed", "learnable", "anneal"):
-            raise ValueError(f"NeuS s mode must be fixed, learnable or anneal, got {mode!r}")
+            raise UserError(f"NeuS s mode must be fixed, learnable or anneal, got {mode!r}")
         if not float(s) > 0:
-            raise ValueError(f"s must be > 0, got {s}")
+            raise UserError(f"s must be > 0, got {s}")
         if mode == "anneal" and not (s_end is not None and float(s_end) > 0):
-            raise ValueError(f"s mode anneal needs s_end > 0, got {s_end}")
+            raise UserError(f"s mode anneal needs s_end > 0, got {s_end}")
         if not 0.0 <= float(anneal_fraction) <= 1.0:
-            raise ValueError(f"anneal_fraction must be in [0, 1], got {anneal_fraction}")
+            raise UserError(f"anneal_fraction must be in [0, 1], got {anneal_fraction}")
         log_s = torch.tensor(math.log(float(s)))
         if mode == "learnable":
             self.log_s = torch.nn.Parameter(log_s)

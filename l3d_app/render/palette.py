@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from l3d_app.errors import UserError
+
 
 def palette(n: int) -> torch.Tensor:
     """(n, 3) distinct RGB colours in [0, 1] (matplotlib tab10 / tab20 / hsv)."""
@@ -24,6 +26,6 @@ def error_colors(errors: torch.Tensor, max_error: float) -> torch.Tensor:
     import matplotlib
 
     if not max_error > 0:
-        raise ValueError(f"max_error must be > 0, got {max_error}")
+        raise UserError(f"max_error must be > 0, got {max_error}")
     x = (errors.detach().float().cpu() / float(max_error)).clamp(0, 1).numpy()
     return torch.from_numpy(matplotlib.colormaps["coolwarm"](x)[:, :3]).float().reshape(-1, 3)

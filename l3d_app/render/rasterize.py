@@ -39,6 +39,7 @@ from typing import Optional, Tuple
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 
 _LOW32 = 0xFFFFFFFF
@@ -271,7 +272,7 @@ def rasterize_projected(uv: torch.Tensor, z: torch.Tensor, faces: torch.Tensor, 
     B, F, HW = uv.shape[0], faces.shape[0], height * width
     dt = uv.dtype
     if max(height, width) > _TILES[-1]:
-        raise ValueError(f"image side {max(height, width)} exceeds {_TILES[-1]} pixels")
+        raise UserError(f"image side {max(height, width)} exceeds {_TILES[-1]} pixels")
     faces = faces.to(device=uv.device, dtype=torch.long)
     table, corners, area2 = _face_table(uv, z, faces)
     with torch.no_grad():

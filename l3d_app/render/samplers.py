@@ -13,6 +13,7 @@ from typing import Optional, Sequence, Tuple, Union
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.runtime.random import rand
 
 Bound = Union[float, torch.Tensor]
@@ -47,7 +48,7 @@ def stratified_samples(near: Bound, far: Bound, n_samples: int, n_rays: Optional
         perturb: jitter inside the bins, drawing from ``generator``.
     """
     if n_samples < 1:
-        raise ValueError(f"n_samples must be >= 1, got {n_samples}")
+        raise UserError(f"n_samples must be >= 1, got {n_samples}")
     if torch.is_tensor(near):
         dtype, device = near.dtype, near.device
     elif torch.is_tensor(far):

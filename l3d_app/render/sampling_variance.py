@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.render.samplers import bin_edges, stratified_samples
 from l3d_app.runtime.random import rand
 
@@ -65,11 +66,11 @@ def optical_depth_estimates(density, near: float, far: float, n_samples: int, n_
                             generator: torch.Generator) -> torch.Tensor:
     """(n_rays,) float64 estimates of ``int_near^far density`` with ``n_samples`` samples per ray."""
     if method not in METHODS:
-        raise ValueError(f"unknown sampling method '{method}'; known: {', '.join(METHODS)}")
+        raise UserError(f"unknown sampling method '{method}'; known: {', '.join(METHODS)}")
     if not far > near or int(n_samples) < 1 or int(n_rays) < 1:
-        raise ValueError(f"need far > near, n_samples >= 1, n_rays >= 1; got {near}, {far}, {n_samples}, {n_rays}")
+        raise UserError(f"need far > near, n_samples >= 1, n_rays >= 1; got {near}, {far}, {n_samples}, {n_rays}")
     if method == "stratified" and int(n_samples) < 2:
-        raise ValueError("stratified sampling needs n_samples >= 2 (one sample is not jittered)")
+        raise UserError("stratified sampling needs n_samples >= 2 (one sample is not jittered)")
     if method == "uniform":
         t = near + (far - near) * rand((int(n_rays), int(n_samples)), generator).to(torch.float64)
         return (far - near) / n_samples * density(t).sum(dim=-1)

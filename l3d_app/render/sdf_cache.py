@@ -6,6 +6,8 @@ from typing import Callable, Sequence, Tuple
 
 import torch
 
+from l3d_app.errors import UserError
+
 SdfFn = Callable[[torch.Tensor], torch.Tensor]
 
 
@@ -24,7 +26,7 @@ class SDFGridCache(torch.nn.Module):
     def __init__(self, box: Tuple[Sequence[float], Sequence[float]], resolution: int = 64):
         super().__init__()
         if int(resolution) < 2:
-            raise ValueError(f"SDF cache resolution must be >= 2, got {resolution}")
+            raise UserError(f"SDF cache resolution must be >= 2, got {resolution}")
         self.resolution = int(resolution)
         self.register_buffer("lo", torch.as_tensor(box[0], dtype=torch.float32).reshape(3))
         self.register_buffer("hi", torch.as_tensor(box[1], dtype=torch.float32).reshape(3))

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import torch
 
+from l3d_app.errors import UserError
+
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
@@ -22,7 +24,7 @@ SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.37317633
 def num_sh_coeffs(degree: int) -> int:
     """Number of coefficients per colour channel up to ``degree`` (0-3): (degree + 1)^2."""
     if not 0 <= int(degree) <= 3:
-        raise ValueError(f"SH degree must be in 0..3, got {degree}")
+        raise UserError(f"SH degree must be in 0..3, got {degree}")
     return (int(degree) + 1) ** 2
 
 

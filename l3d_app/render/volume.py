@@ -36,6 +36,7 @@ from typing import Callable, Dict, Optional, Sequence, Union
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import RENDERERS
@@ -138,7 +139,7 @@ def render_rays_chunked(fn: Callable[[torch.Tensor, torch.Tensor], Dict[str, tor
     (call under ``torch.no_grad()`` for inference).
     """
     if chunk < 1:
-        raise ValueError(f"chunk must be >= 1, got {chunk}")
+        raise UserError(f"chunk must be >= 1, got {chunk}")
     lead = origins.shape[:-1]
     o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
     parts: Dict[str, list] = {}
@@ -171,7 +172,7 @@ class VolumeRenderer:
     def __init__(self, n_samples: int = 64, near: float = 0.0, far: float = 5.0, chunk: int = 8192,
                  background: Background = None, perturb: bool = False, mode: str = "density"):
         if mode not in ("density", "alpha"):
-            raise ValueError(f"mode must be 'density' or 'alpha', got {mode!r}")
+            raise UserError(f"mode must be 'density' or 'alpha', got {mode!r}")
         self.n_samples, self.near, self.far = int(n_samples), float(near), float(far)
         self.chunk, self.background, self.perturb, self.mode = int(chunk), background, bool(perturb), mode
 

@@ -15,6 +15,7 @@ from typing import Any, Iterable, List, Mapping, Optional, Tuple
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.registry import OPTIMIZERS
 from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.lr_schedules import exponential, on_horizon, step_decay, warmup_cosine
@@ -40,7 +41,7 @@ def _factor(opt: torch.optim.Optimizer, factor) -> List[Any]:
 
 def _adam(params, lr: float, eps: float) -> torch.optim.Adam:
     if not float(lr) > 0 or not float(eps) > 0:
-        raise ValueError(f"lr and eps must be > 0, got lr={lr}, eps={eps}")
+        raise UserError(f"lr and eps must be > 0, got lr={lr}, eps={eps}")
     return torch.optim.Adam(params, lr=float(lr), eps=float(eps))
 
 
@@ -55,7 +56,7 @@ def adam_step(params, iters: int, lr: float = 1e-3, eps: float = 1e-8, decay: fl
               decay_every: int = 1000) -> Built:
     """Adam, the rate multiplied by ``decay`` every ``decay_every`` steps."""
     if int(decay_every) < 1 or not 0 < float(decay) <= 1:
-        raise ValueError(f"adam_step needs decay_every >= 1 and decay in (0, 1], got {decay_every}, {decay}")
+        raise UserError(f"adam_step needs decay_every >= 1 and decay in (0, 1], got {decay_every}, {decay}")
     opt = _adam(params, lr, eps)
     return opt, _factor(opt, step_decay(float(decay), int(decay_every)))
 
@@ -64,7 +65,7 @@ def adam_step(params, iters: int, lr: float = 1e-3, eps: float = 1e-8, decay: fl
 def adam_exp(params, iters: int, lr: float = 1e-3, eps: float = 1e-8, final_factor: float = 0.01) -> Built:
     """Adam, the rate decayed exponentially to ``lr * final_factor`` at step ``iters``."""
     if not float(final_factor) > 0:
-        raise ValueError(f"final_factor must be > 0, got {final_factor}")
+        raise UserError(f"final_factor must be > 0, got {final_factor}")
     opt = _adam(params, lr, eps)
     return opt, _factor(opt, exponential(float(final_factor), int(iters)))
 

@@ -22,6 +22,8 @@ from typing import Any, Callable, ContextManager, Union
 
 import torch
 
+from l3d_app.errors import UserError
+
 #: the precision strings a task's ``precision=`` knob accepts.
 PRECISIONS = ("fp32", "bf16")
 _DTYPES = {"bf16": torch.bfloat16}
@@ -30,7 +32,7 @@ _DTYPES = {"bf16": torch.bfloat16}
 def check_precision(precision: str) -> str:
     """Return ``precision`` if it is one of :data:`PRECISIONS`, else raise ValueError naming them."""
     if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+        raise UserError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
     return precision
 
 

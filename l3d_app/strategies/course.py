@@ -11,6 +11,7 @@ at a time for an ablation.
 
 from __future__ import annotations
 
+from l3d_app.errors import UserError
 from l3d_app.registry import STRATEGIES
 from l3d_app.strategies.base import Strategy
 
@@ -22,4 +23,4 @@ class CourseStrategy(Strategy):
     def initialize(self, model, optimizer, scene_extent: float) -> None:
         super().initialize(model, optimizer, scene_extent)
         if model.num == 0:
-            raise ValueError("strategy=course keeps the initial Gaussians and got none")
+            raise UserError("strategy=course keeps the initial Gaussians and got none")

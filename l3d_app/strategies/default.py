@@ -18,6 +18,7 @@ from typing import Any, Dict, Optional
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.models.gaussians import PARAM_NAMES
 from l3d_app.registry import STRATEGIES
 from l3d_app.render.gaussians import quaternion_to_rotation
@@ -59,7 +60,7 @@ class DefaultStrategy(Strategy):
                  max_gaussians: int = 200_000, reset_min_steps_left: int = 0):
         super().__init__()
         if int(every) <= 0:
-            raise ValueError(f"strategy.every must be > 0, got {every}")
+            raise UserError(f"strategy.every must be > 0, got {every}")
         self.start, self.until, self.every = int(start), int(until), int(every)
         self.grad_threshold = float(grad_threshold)
         self.percent_dense = float(percent_dense)

@@ -22,6 +22,7 @@ from typing import Any, Dict, Optional
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.models.gaussians import PARAM_NAMES
 from l3d_app.registry import STRATEGIES
 from l3d_app.render.gaussians import quaternion_to_rotation
@@ -72,7 +73,7 @@ class MCMCStrategy(Strategy):
                  opacity_reg: float = 0.01, scale_reg: float = 0.01):
         super().__init__()
         if int(every) <= 0 or int(cap_max) <= 0:
-            raise ValueError(f"strategy.every and strategy.cap_max must be > 0, got {every}, {cap_max}")
+            raise UserError(f"strategy.every and strategy.cap_max must be > 0, got {every}, {cap_max}")
         self.cap_max, self.start, self.until, self.every = int(cap_max), int(start), int(until), int(every)
         self.min_opacity, self.grow_rate, self.noise_lr = float(min_opacity), float(grow_rate), float(noise_lr)
         self.opacity_reg, self.scale_reg = float(opacity_reg), float(scale_reg)

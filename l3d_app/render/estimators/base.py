@@ -6,6 +6,7 @@ from typing import Optional, Sequence, Tuple
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.render.samplers import ray_aabb
 
 Box = Tuple[Sequence[float], Sequence[float]]
@@ -25,7 +26,7 @@ class Estimator(torch.nn.Module):
         if scene_box is None and (near is None or far is None):
             raise ValueError("an estimator needs a scene_box or both near and far")
         if scene_box is None and not float(far) > float(near):
-            raise ValueError(f"far must be > near, got near={near}, far={far}")
+            raise UserError(f"far must be > near, got near={near}, far={far}")
         self.scene_box = None if scene_box is None else ([float(v) for v in scene_box[0]],
                                                           [float(v) for v in scene_box[1]])
         self.near, self.far, self.min_t = near, far, float(min_t)

@@ -6,6 +6,7 @@ from typing import Optional
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.registry import SAMPLERS
 from l3d_app.render.estimators.base import Box, Samples, segment_ends
 from l3d_app.render.estimators.stratified import StratifiedEstimator
@@ -30,7 +31,7 @@ class ImportanceEstimator(StratifiedEstimator):
                  min_t: float = 0.0):
         super().__init__(n_samples, scene_box=scene_box, near=near, far=far, min_t=min_t)
         if int(n_fine) < 1:
-            raise ValueError(f"n_fine must be >= 1, got {n_fine}")
+            raise UserError(f"n_fine must be >= 1, got {n_fine}")
         self.n_fine, self.padding = int(n_fine), float(padding)
 
     def sampling(self, origins: torch.Tensor, dirs: torch.Tensor, *, perturb: bool = False,

@@ -6,6 +6,7 @@ from typing import Optional
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.registry import SAMPLERS
 from l3d_app.render.estimators.base import Box, Estimator, Samples, segment_ends
 from l3d_app.render.rendering import pack_samples
@@ -29,7 +30,7 @@ class StratifiedEstimator(Estimator):
                  far: Optional[float] = None, min_t: float = 0.0):
         super().__init__(scene_box, near, far, min_t)
         if int(n_samples) < 1:
-            raise ValueError(f"n_samples must be >= 1, got {n_samples}")
+            raise UserError(f"n_samples must be >= 1, got {n_samples}")
         self.n_samples = int(n_samples)
 
     def dense(self, origins: torch.Tensor, dirs: torch.Tensor, perturb: bool = False,
