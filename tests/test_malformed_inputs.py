@@ -369,6 +369,15 @@ def test_neural_sdf_needs_points_with_extent_and_both_splits(compose, tmp_path):
     with pytest.raises(UserError, match="val_fraction=0.1 of 4 points holds out 0"):
         run_task(compose("task=neural_sdf", "data=bunny", f"data.path={tmp_path / 'cloud.npz'}", "data.stride=1",
                          "val_fraction=0.1", "tensorboard=false"), out_dir=tmp_path / "run")
+    run_task(compose("task=neural_sdf", "data=bunny", f"data.path={tmp_path / 'cloud.npz'}", "data.stride=1",
+                     "val_fraction=0", "iters=2", "gif_frames=0", "mesh_resolution=8", "eval_points=50",
+                     "tensorboard=false"), out_dir=tmp_path / "ok")
+
+    def no_constants(name):
+        raise AssertionError(f"metrics.json holds {name}")
+
+    metrics = json.loads((tmp_path / "ok" / "metrics.json").read_text(), parse_constant=no_constants)
+    assert metrics["val_surface_abs"] is None and metrics["n_points"] == 4       # no validation: null, not NaN
 
 
 def test_an_unreadable_pointnet_checkpoint_is_named(tmp_path):
