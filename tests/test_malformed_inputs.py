@@ -411,3 +411,14 @@ def test_a_bare_name_is_a_list_of_one_never_its_letters():
     assert config_rows([[0, 0, 1], [1, 2, 3]], "point_lights", None, 3) == [[0.0, 0.0, 1.0], [1.0, 2.0, 3.0]]
     with pytest.raises(UserError, match="box must be a list of 2 lists of 3 numbers"):
         config_rows([[0, 0, 1]], "box", 2, 3)
+
+
+def test_metrics_json_is_strict_json(tmp_path):
+    """A figure that does not exist (NaN) or overflowed (inf) is written as null: JSON has no NaN."""
+    from l3d_app.runtime.files import write_json
+
+    write_json(tmp_path / "m.json", {"a": float("nan"), "b": torch.tensor([1.5, float("inf")]), "c": np.float32(2.0),
+                                     "d": {"e": (1, float("-inf"))}, "f": True})
+    text = (tmp_path / "m.json").read_text()
+    assert json.loads(text) == {"a": None, "b": [1.5, None], "c": 2.0, "d": {"e": [1, None]}, "f": True}
+    assert "NaN" not in text and "Infinity" not in text

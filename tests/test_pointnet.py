@@ -268,7 +268,7 @@ def test_robustness_command(compose, cache_dir, tmp_path):
     for kind in ("cls", "seg"):
         for key in ("rot0", "rot90", "pts400", "pts100"):
             assert 0.0 <= m[f"{kind}_{key}"] <= 1.0
-        assert np.isnan(m[f"{kind}_pts100000"])  # more points than the clouds have
+        assert m[f"{kind}_pts100000"] is None  # more points than the clouds have: no figure (JSON null)
         assert set(m["tables"][kind]) == {"rotation", "num_points"}
     assert m["cls_rot0"] == pytest.approx(m["cls_pts400"])  # both: every point, unrotated
     assert "| 90 |" in (tmp_path / "a" / "robustness.md").read_text()

@@ -6,6 +6,7 @@ A run that is interrupted or fails never leaves a half-written artefact under th
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from contextlib import contextmanager
@@ -29,15 +30,24 @@ def atomic_path(path: os.PathLike) -> Iterator[Path]:
 
 
 def write_json(path: os.PathLike, data: Mapping[str, Any]) -> Path:
-    """Write ``data`` as pretty JSON atomically; returns the path."""
+    """Write ``data`` as pretty, strict JSON atomically; returns the path. Tensors and numpy
+    values become numbers or lists; a NaN or infinite number becomes ``null`` (JSON has no NaN:
+    ``jq`` and JavaScript reject Python's ``NaN``), so a figure that does not exist reads as none."""
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=_to_builtin) + "\n")
+        tmp.write_text(json.dumps(_json_value(data), indent=2, sort_keys=True, allow_nan=False) + "\n")
     return Path(path)
 
 
-def _to_builtin(value: Any) -> Any:
-    if hasattr(value, "item"):
-        return value.item()
-    if hasattr(value, "tolist"):
-        return value.tolist()
+def _json_value(value: Any) -> Any:
+    """``value`` as plain JSON types (see :func:`write_json`)."""
+    if isinstance(value, Mapping):
+        return {str(k): _json_value(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_value(v) for v in value]
+    if isinstance(value, (bool, int, str)) or value is None:
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if hasattr(value, "tolist"):            # tensors, numpy arrays and scalars
+        return _json_value(value.tolist())
     return str(value)
