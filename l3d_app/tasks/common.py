@@ -67,8 +67,8 @@ RUN_KEYS_POSITIVE = ("fps",)
 def check_output_knobs(cfg) -> None:
     """Build the renderers (``renderer``, ``point_renderer``) and the camera path (``camera``)
     that ``cfg`` names, once, and drop them: a bad shading, radius unit, background or path
-    name fails now, not at the turntable after training (nor never, for the renderer a run's
-    data does not use)."""
+    name fails now, not at the turntable after training (or, for the renderer the run's data
+    does not use, never)."""
     for key in ("renderer", "point_renderer"):
         if cfg.get(key) is not None:
             RENDERERS.build(cfg[key])
