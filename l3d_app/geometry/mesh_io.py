@@ -86,8 +86,7 @@ def _checked_mesh(path: Path, verts, faces, vert_colors=None, verts_uvs=None,
                         f"[0, {len(verts)}) (found {int(faces.min())}..{int(faces.max())})")
     if not np.isfinite(verts).all():
         raise UserError(f"mesh file {path} is malformed: vertices contain NaN or Inf")
-    tri = verts.astype(np.float64)[faces]                                     # (F, 3, 3)
-    if not np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).any():
+    if not _has_area(verts, faces):
         raise UserError(f"mesh file {path} has no surface: every face has zero area "
                         f"(its vertices coincide or lie on a line)")
 
@@ -97,6 +96,17 @@ def _checked_mesh(path: Path, verts, faces, vert_colors=None, verts_uvs=None,
     return Mesh(verts=t(verts, torch.float32), faces=t(faces, torch.int64),
                 vert_colors=t(vert_colors, torch.float32), verts_uvs=t(verts_uvs, torch.float32),
                 faces_uvs=t(faces_uvs, torch.int64), texture=t(texture, torch.float32))
+
+
+def _has_area(verts: np.ndarray, faces: np.ndarray, chunk: int = 1 << 16) -> bool:
+    """True when some face of (V, 3) ``verts`` and (F, 3) ``faces`` has a non-zero area (float64
+    cross products, a chunk of faces at a time: a real mesh answers in its first chunk)."""
+    v64 = verts.astype(np.float64)
+    for start in range(0, len(faces), chunk):
+        tri = v64[faces[start:start + chunk]]                                      # (f, 3, 3)
+        if np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).any():
+            return True
+    return False
 
 
 def read_image(path: Path) -> np.ndarray:
