@@ -16,8 +16,9 @@ def main(cfg: DictConfig):
 
 def cli() -> None:
     """``main()`` with Hydra's own errors (a typo'd key, an unknown option of a config group, a
-    malformed override) reported like every other bad input: one line on stderr, exit status 2,
-    nothing written. ``L3D_DEBUG=1`` leaves them to Hydra's report."""
+    malformed override) and the file system's (a run directory that cannot be made or written)
+    reported like every other bad input: one line on stderr, exit status 2. ``L3D_DEBUG=1``
+    leaves them to Hydra's report or the traceback."""
     from hydra.errors import CompactHydraException
 
     if os.environ.get("L3D_DEBUG", "").strip() in ("", "0"):
@@ -28,6 +29,13 @@ def cli() -> None:
         from l3d_app.app import config_error_line
 
         print(f"l3d_app: error: {config_error_line(err)}", file=sys.stderr)
+        sys.exit(2)
+    except OSError as err:       # the file system refused: a run directory that is a file, no permission, disk full
+        if os.environ.get("L3D_DEBUG", "").strip() not in ("", "0"):
+            raise
+        where = f": {err.filename}" if err.filename else ""
+        print(f"l3d_app: error: {err.strerror or err}{where} (the file system refused: check hydra.run.dir, "
+              f"permissions, free space)", file=sys.stderr)
         sys.exit(2)
 
 

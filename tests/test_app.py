@@ -110,6 +110,14 @@ def test_cli_config_errors_are_one_line_exit_2(tmp_path, args, needle):
     assert not (tmp_path / "run").exists()
 
 
+def test_cli_run_directory_that_is_a_file_exits_2(tmp_path):
+    (tmp_path / "taken").write_text("not a folder")
+    out = main_py("num_frames=2", "image_size=16", f"hydra.run.dir={tmp_path / 'taken'}")
+    assert out.returncode == 2, out.stderr
+    assert out.stderr.startswith("l3d_app: error: File exists:") and "hydra.run.dir" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1 and (tmp_path / "taken").read_text() == "not a folder"
+
+
 def test_cli_malformed_obj_exits_2(tmp_path):
     bad = tmp_path / "bad.obj"
     bad.write_text("v 0 0 0\nv 1 0 0\nf 1 2 7\n")
