@@ -123,3 +123,27 @@ def test_a_stage_without_checkpoint_writes_none_and_logs_under_its_prefix(tmp_pa
     assert float((model.weight.detach() - torch.tensor([[1.0, -2.0, 0.5]])).abs().max()) < 0.05
     assert "stage/loss" in seen and "stage/step_ms" in seen
     assert not any(k.startswith("train/") or k.startswith("time/") for k in seen)
+
+
+def test_resume_from_another_tasks_or_another_sizes_checkpoint_is_named(tmp_path):
+    """A checkpoint whose modules or sizes differ from the run's is one UserError, never a
+    KeyError or a 'size mismatch' traceback; the checkpoint file is left as it was."""
+    import pytest
+
+    from l3d_app.errors import UserError
+    from l3d_app.runtime.training import load_checkpoint, save_checkpoint
+
+    def trainable(name, width):
+        module = torch.nn.Linear(2, width)
+        return Trainable({name: module}, torch.optim.Adam(module.parameters(), lr=1e-3))
+
+    gen = torch.Generator().manual_seed(0)
+    path = tmp_path / CHECKPOINT
+    assert save_checkpoint(path, trainable("field", 3), 5, gen, {"eval": []})
+    before = path.read_bytes()
+    with pytest.raises(UserError, match="holds field, this run trains gaussians: a checkpoint of another task"):
+        load_checkpoint(path, trainable("gaussians", 3), gen)
+    with pytest.raises(UserError, match=r"does not fit this run's model \(size mismatch for weight"):
+        load_checkpoint(path, trainable("field", 4), gen)
+    assert path.read_bytes() == before
+    assert load_checkpoint(path, trainable("field", 3), gen)["step"] == 5

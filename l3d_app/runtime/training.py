@@ -188,9 +188,22 @@ def read_checkpoint(path: Path) -> Dict[str, Any]:
 
 
 def load_checkpoint(path: Path, trainable: Trainable, generator: torch.Generator) -> Dict[str, Any]:
-    """Restore a checkpoint written by :func:`save_checkpoint`; returns its dict."""
+    """Restore a checkpoint written by :func:`save_checkpoint`; returns its dict. One written by
+    another task, or by a model of other sizes, is a :class:`UserError` that says which, before
+    anything of the run is touched on disk."""
     state = read_checkpoint(path)
-    trainable.load_state_dict(state["trainable"])
+    saved = sorted(state["trainable"].get("modules", {}))
+    if saved != sorted(trainable.modules):
+        raise UserError(f"{path} holds {', '.join(saved) or 'no modules'}, this run trains "
+                        f"{', '.join(sorted(trainable.modules))}: a checkpoint of another task? "
+                        "Resume with the task that wrote it, or give this run its own hydra.run.dir")
+    try:
+        trainable.load_state_dict(state["trainable"])
+    except (RuntimeError, ValueError, KeyError) as err:
+        lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+        detail = lines[1] if len(lines) > 1 else (lines[0] if lines else type(err).__name__)  # torch: a header, then one line per key
+        raise UserError(f"{path} does not fit this run's model ({detail}): "
+                        "resume with the settings that wrote it, or give this run its own hydra.run.dir") from err
     _set_rng_state(generator, state["rng"])
     return state
 
