@@ -12,11 +12,13 @@ The registries fill on import: each package imports its registering modules
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import signal
 import sys
 from pathlib import Path
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Iterator, Optional
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -38,10 +40,20 @@ def run(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]:
 
     Bad input (``ValueError``, ``TypeError``, a config error) ends the process with a
     one-line message and exit status 2 (set ``L3D_DEBUG=1`` to see the traceback instead);
-    a run stopped by SIGINT/SIGTERM saves its checkpoint and metrics, then exits with 130.
+    a run stopped by SIGINT/SIGTERM in its training loop saves its checkpoint and metrics, then
+    exits with 130; stopped outside the loop (setting up, the test evaluation, the pictures)
+    it exits with 130 and one line, its checkpoints so far kept.
     """
     try:
-        return run_task(cfg, out_dir)
+        with _sigterm_as_interrupt():
+            return run_task(cfg, out_dir)
+    except KeyboardInterrupt:
+        if out_dir is None:
+            remove_unused_run_dir()
+        print("l3d_app: interrupted outside the training loop (setting up, or evaluating and writing after it); "
+              "a checkpoint written so far stays in the run directory (rerun with resume=true to continue)",
+              file=sys.stderr)
+        sys.exit(130)
     except USER_ERRORS as err:
         if debug_enabled():
             raise
@@ -57,6 +69,25 @@ def run(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]:
 USER_ERRORS = (ValueError, TypeError, OmegaConfBaseException)
 """What the app reports as a user error: library code raises ValueError/TypeError for bad
 input (UserError is a ValueError); OmegaConf raises its own errors for bad config keys."""
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM raises ``KeyboardInterrupt`` as SIGINT does (the training loop installs its own
+    handlers for both and turns them into a clean stop; outside it, both end the run with one
+    line and status 130, not a silent 143)."""
+    def handler(_signum, _frame):
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:                    # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def debug_enabled() -> bool:
@@ -115,8 +146,8 @@ def run_task(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]
         logger.text("config", "```\n" + OmegaConf.to_yaml(cfg, resolve=True) + "\n```")
         metrics = ctx.write_metrics(task(cfg, ctx) or {})
         logger.hparams(ctx.params, metrics)
-    except USER_ERRORS:
-        logger.discard_if_at_most(1)      # bad input before anything but the config was logged
+    except (*USER_ERRORS, KeyboardInterrupt):
+        logger.discard_if_at_most(1)      # bad input (or a stop) before anything but the config was logged
         raise
     finally:
         logger.close()

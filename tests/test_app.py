@@ -197,3 +197,29 @@ def test_registry_builds_from_omegaconf_without_importing_it():
     assert out == {"sizes": [1, 2], "sub": {"a": [1, 2]}}
     assert type(out["sizes"]) is list and type(out["sub"]) is dict
     assert plain({"t": (1, [2])}) == {"t": (1, [2])} and plain("abc") == "abc"
+
+
+@pytest.mark.parametrize("how", ["sigint", "sigterm"])
+def test_a_stop_outside_the_training_loop_is_one_line_and_130(compose, tmp_path, monkeypatch, capsys, how):
+    """Ctrl-C (or SIGTERM) while a task sets up or writes its pictures: exit 130 and one line,
+    not a KeyboardInterrupt traceback or a silent 143."""
+    import signal
+    import time
+
+    from l3d_app import app
+
+    def task(cfg, ctx):
+        if how == "sigint":
+            raise KeyboardInterrupt
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)                                   # the handler raises before this ends
+        return {}
+
+    monkeypatch.setattr(app.TASKS, "get", lambda name: task)
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit) as stop:
+        app.run(compose("tensorboard=false"), out_dir=tmp_path)
+    err = capsys.readouterr().err
+    assert stop.value.code == 130 and err.startswith("l3d_app: interrupted outside the training loop")
+    assert len(err.strip().splitlines()) == 1
+    assert signal.getsignal(signal.SIGTERM) == before                   # the app's handler is gone again

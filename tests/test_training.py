@@ -147,3 +147,33 @@ def test_resume_from_another_tasks_or_another_sizes_checkpoint_is_named(tmp_path
         load_checkpoint(path, trainable("field", 4), gen)
     assert path.read_bytes() == before
     assert load_checkpoint(path, trainable("field", 3), gen)["step"] == 5
+
+
+def test_resume_without_a_checkpoint_says_so_and_guard_counts_carry_over(tmp_path, capsys):
+    """resume=true into a folder with no checkpoint.pt starts at 0 with a note (a typo in
+    hydra.run.dir must not restart silently); skipped steps and the step counters are kept
+    in the checkpoint, so a resumed run reports the whole run's, with one warning line."""
+    ctx = make_ctx(tmp_path)
+    model, trainable = make_problem()
+    first = train(ctx, trainable, regression_step(ctx, model, poison={1, 2}), iters=4, resume=True)
+    err = capsys.readouterr().err
+    assert "resume=true, but there is no" in err and "training starts at step 0" in err
+    assert "l3d_app: warning: 2 of 4 steps were skipped as non-finite" in err
+    assert first.skipped_steps == 2 and first.steps_run == 4
+    again = train(ctx, trainable, regression_step(ctx, model), iters=6, resume=True)
+    err = capsys.readouterr().err
+    assert "no checkpoint" not in err and "warning" not in err            # nothing new was skipped
+    assert again.skipped_steps == 2 and again.steps_run == 6 and again.train_seconds >= first.train_seconds
+
+
+def test_an_update_that_overflows_inside_the_optimiser_is_named(tmp_path):
+    """Adam at lr=1e38: its step size overflows float32 inside optimizer.step (a RuntimeError the
+    NaN guard never sees): one UserError naming the step."""
+    import pytest
+
+    from l3d_app.errors import UserError
+
+    ctx = make_ctx(tmp_path)
+    model, trainable = make_problem(lr=1e38)
+    with pytest.raises(UserError, match="optimiser's update overflowed at step 0"):
+        train(ctx, trainable, regression_step(ctx, model), iters=3)

@@ -35,6 +35,7 @@ import copy
 import math
 import os
 import signal
+import sys
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -109,8 +110,8 @@ class TrainResult:
     skipped_steps: int
     restores: int
     history: List[Dict[str, float]] = field(default_factory=list)
-    train_seconds: float = 0.0      # wall seconds of the steps run in this process (evaluation excluded)
-    steps_run: int = 0              # steps run in this process (a resumed run counts from its start)
+    train_seconds: float = 0.0      # wall seconds of the steps run (evaluation excluded), resumed parts included
+    steps_run: int = 0              # steps run, resumed parts included (not the steps of the schedule skipped)
     budget_stop: bool = False       # stopped by ``time_budget`` before ``iters``
 
     @property
@@ -270,9 +271,15 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
         state = load_checkpoint(ckpt_path, trainable, ctx.generator)
         start, history = int(state["step"]), state["history"]
         ctx.logger.text("train/resume", f"resumed from step {start}")
+    elif checkpoint and resume:
+        note = f"resume=true, but there is no {ckpt_path}: training starts at step 0"
+        print(f"l3d_app: note: {note}", file=sys.stderr)
+        ctx.logger.text("train/resume", note)
+    before = dict(history.get("counters", {}))      # the resumed parts' steps, seconds, skipped steps, restores
     good_state = copy.deepcopy(trainable.state_dict())
     snapshot_every = checkpoint_every or max(1, iters // 20)
-    bad_in_a_row = skipped = restores = 0
+    bad_in_a_row = 0
+    skipped, restores = int(before.get("skipped", 0)), int(before.get("restores", 0))
     metrics: Dict[str, float] = dict(history["eval"][-1][1]) if history["eval"] else {}
     step = start
     stop = _StopFlag()
@@ -297,7 +304,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                 loss.backward()
                 ok = _grads_finite(params)
             if ok:
-                trainable.optimizer.step()
+                _optimizer_step(trainable, step)
                 ok = trainable.all_finite()
             if not ok:
                 skipped += 1
@@ -328,6 +335,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
             if ok and done % snapshot_every == 0:
                 good_state = copy.deepcopy(trainable.state_dict())
             if checkpoint and checkpoint_every and done % checkpoint_every == 0:
+                history["counters"] = _counters(before, clock, skipped, restores)
                 save_checkpoint(ckpt_path, trainable, done, ctx.generator, history)
             if stop_at is not None and done == stop_at:
                 stop.signal = signal.SIGINT  # test hook: behave as if interrupted here
@@ -354,15 +362,40 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
     interrupted = stop.signal is not None and done < iters
     if eval_fn is not None and (not history["eval"] or history["eval"][-1][0] != done):
         metrics = clock.timed_eval(lambda: _evaluate(ctx, eval_fn, done, history))
+    counters = history["counters"] = _counters(before, clock, skipped, restores)
     if checkpoint:
         save_checkpoint(ckpt_path, trainable, done, ctx.generator, history)
+    if skipped > int(before.get("skipped", 0)):
+        warning = (f"{skipped} of {counters['steps']} steps were skipped as non-finite, {restores} restores of the "
+                   "last good state (guard/* in TensorBoard): a learning rate too large?")
+        print(f"l3d_app: warning: {warning}", file=sys.stderr)
+        ctx.logger.text("train/guard", warning)
     if interrupted:
         ctx.interrupted = True
         ctx.logger.text("train/interrupted", f"stopped by signal {stop.signal} at step {done}")
     return TrainResult(step=done, metrics=metrics, interrupted=interrupted,
                        skipped_steps=skipped, restores=restores, history=list(history["eval"]),
-                       train_seconds=clock.train_seconds, steps_run=clock.steps,
+                       train_seconds=counters["seconds"], steps_run=counters["steps"],
                        budget_stop=clock.budget_stop)
+
+
+def _counters(before: Dict[str, Any], clock: "_LoopClock", skipped: int, restores: int) -> Dict[str, Any]:
+    """The run's step counters, its resumed parts included (kept in the checkpoint's history):
+    steps run, their wall seconds, steps skipped as non-finite, restores of the good state."""
+    return {"steps": int(before.get("steps", 0)) + clock.steps,
+            "seconds": float(before.get("seconds", 0.0)) + clock.train_seconds,
+            "skipped": skipped, "restores": restores}
+
+
+def _optimizer_step(trainable: Trainable, step: int) -> None:
+    """``optimizer.step()``; an update that overflows float32 inside the optimiser (Adam's step
+    size at a learning rate near 1e38) is a :class:`UserError`, not a traceback."""
+    try:
+        trainable.optimizer.step()
+    except RuntimeError as err:
+        if "overflow" not in str(err):
+            raise
+        raise UserError(f"the optimiser's update overflowed at step {step} ({err}): a learning rate too large?") from err
 
 
 def _stale_price(history: Dict[str, Any], done: int, eval_fn, eval_every: int) -> bool:
