@@ -194,6 +194,12 @@ def test_gs_train_resume_is_bitwise_identical(compose, tmp_path, monkeypatch):
         assert torch.equal(a[name], b[name]), name
     for k in ("grad_accum", "count", "max_radii"):
         assert torch.equal(full["trainable"]["extra"]["strategy"][k], cut["trainable"]["extra"]["strategy"][k]), k
+    # progress.gif: one frame per validation of the whole run, the part before the stop included
+    import imageio.v2 as imageio
+
+    frames = {d: len(imageio.mimread(tmp_path / d / "progress.gif")) for d in ("full", "cut")}
+    steps = [row["step"] for row in json.loads((tmp_path / "cut" / "metrics.json").read_text())["history"]]
+    assert frames == {"full": 2, "cut": 3} and steps == [15, 18, 36]
 
 
 def test_colors_from_views_median_of_the_pixels_seen():

@@ -59,7 +59,9 @@ class Trainable:
     """What a task trains: named modules (or ParameterDicts) and their optimiser.
 
     ``extra`` holds any other picklable state to checkpoint (e.g. an occupancy grid as a
-    tensor, a scheduler); objects with ``state_dict``/``load_state_dict`` are handled.
+    tensor, a scheduler, a list of progress frames); objects with ``state_dict`` /
+    ``load_state_dict`` are handled; tensors and lists are restored in place (the task's own
+    reference to them stays valid).
     """
 
     modules: Dict[str, torch.nn.Module]
@@ -93,6 +95,8 @@ class Trainable:
                 self.extra[k].load_state_dict(v)
             elif k in self.extra and torch.is_tensor(self.extra[k]):
                 self.extra[k].copy_(v)
+            elif k in self.extra and isinstance(self.extra[k], list):
+                self.extra[k][:] = v
             else:
                 self.extra[k] = v
 

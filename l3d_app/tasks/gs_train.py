@@ -28,6 +28,7 @@ Outputs: ``test_views.gif``, ``progress.gif`` (a validation view over training),
 from __future__ import annotations
 
 import time
+from typing import List
 
 import torch
 
@@ -41,7 +42,7 @@ from l3d_app.render.gaussians_coverage import shrink_to_coverage
 from l3d_app.render.gaussians_panels import colorize_depth, depth_range, error_map, side_by_side
 from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.lr_schedules import exponential, on_horizon
-from l3d_app.runtime.media import save_gif
+from l3d_app.runtime.media import save_gif, to_uint8
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import background_parameter, require_positive
@@ -105,8 +106,10 @@ def gs_train(cfg, ctx) -> dict:
     sched = torch.optim.lr_scheduler.LambdaLR(opt, [on_horizon(decay, horizon)] + [lambda s: 1.0] * (len(groups) - 1))
     strategy = STRATEGIES.build(cfg.strategy)
     strategy.initialize(model, opt, extent)
+    prog_frames: List[torch.Tensor] = []     # uint8 (H, W, 3) validation panels: checkpointed, so a resumed gif is whole
     trainable = Trainable({"gaussians": model, "background": background}, opt,
-                          extra={"strategy": strategy, "horizon": horizon}, schedulers=[sched])
+                          extra={"strategy": strategy, "horizon": horizon, "progress_frames": prog_frames},
+                          schedulers=[sched])
     H, W = data.image_size
     tr, lam, info, step_times = data.train, float(cfg.ssim_lambda), {"width": W, "height": H}, []
 
@@ -153,7 +156,6 @@ def gs_train(cfg, ctx) -> dict:
             ctx.logger.log_scalars({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
         step_times.append((time.perf_counter() - info["t0"], time.process_time() - info["c0"]))
 
-    prog_frames = []
     lo_hi = depth_range(data.cameras[int(data.val[0])].centers()[0], data.scene_box)
 
     def evaluate(views, deg):
@@ -166,7 +168,7 @@ def gs_train(cfg, ctx) -> dict:
 
     def eval_fn(step: int):
         pred, _, panel, m = evaluate(data.val, degree(step))
-        prog_frames.append(panel)
+        prog_frames.append(torch.from_numpy(to_uint8(panel)))
         return {**m, "n_gaussians": model.num, "images": {"pred_truth_error_depth": panel}}
 
     with ctx.stopwatch.stage("train"):
@@ -181,7 +183,7 @@ def gs_train(cfg, ctx) -> dict:
     log_test(ctx, test, result.step, images={"pred_truth_error_depth": panel})
     save_gif(ctx.path("test_views.gif"), torch.cat([pred, target], 2), fps=float(cfg.fps) / 4)
     if prog_frames:
-        save_gif(ctx.path("progress.gif"), torch.stack(prog_frames), fps=float(cfg.fps))
+        save_gif(ctx.path("progress.gif"), torch.stack(prog_frames).float() / 255.0, fps=float(cfg.fps))
     save_gaussian_ply(ctx.path("point_cloud.ply"), **model.tensors())
     return {**test, **result.val_metrics(), **result.timing(), "n_gaussians": model.num,
             "background": [round(float(c), 4) for c in background["rgb"].detach().clamp(0, 1)],

@@ -39,7 +39,7 @@ from l3d_app.errors import UserError
 from l3d_app.losses.sds import SDSLoss
 from l3d_app.metrics.prompt_match import check_image
 from l3d_app.registry import TASKS
-from l3d_app.runtime.media import save_gif, save_png
+from l3d_app.runtime.media import save_gif, save_png, to_uint8
 from l3d_app.runtime.lr_schedules import warmup_cosine
 from l3d_app.runtime.random import randint, randn
 from l3d_app.runtime.training import Trainable, train
@@ -83,7 +83,8 @@ def sds_image(cfg, ctx) -> dict:
         raise UserError(f"need lr_warmup >= 0 and 0 <= lr_final_ratio <= 1, got {warmup}, {final_ratio}")
     schedulers = [] if warmup == 0 and final_ratio == 1.0 else [torch.optim.lr_scheduler.LambdaLR(
         optimizer, warmup_cosine(warmup, warmup, int(cfg.iters), final_ratio))]
-    trainable = Trainable({"image": holder}, optimizer, schedulers=schedulers)
+    frames: List[torch.Tensor] = []          # uint8 (H, W, 3): checkpointed, so a resumed progress.gif is whole
+    trainable = Trainable({"image": holder}, optimizer, extra={"frames": frames}, schedulers=schedulers)
     clip = cfg.get("latent_clip")
     if clip is not None and (not prior.is_latent or not float(clip) > 0):
         raise UserError(f"latent_clip needs a latent prior (space=latent) and a value > 0, got {clip}")
@@ -95,7 +96,6 @@ def sds_image(cfg, ctx) -> dict:
     if t_end is not None and not float(cfg.t_min) <= t_end <= t_top:
         raise UserError(f"need t_min <= t_max_end <= t_max, got t_max_end={t_end}")
     last: Dict[str, float] = {}
-    frames: List[torch.Tensor] = []
 
     def decode() -> torch.Tensor:
         with torch.no_grad():
@@ -124,7 +124,7 @@ def sds_image(cfg, ctx) -> dict:
                 holder["x"].clamp_(-float(clip), float(clip))
         if i % int(cfg.frame_every) == 0 or i == int(cfg.iters) - 1:
             img = decode()
-            frames.append(_hwc(img))
+            frames.append(torch.from_numpy(to_uint8(_hwc(img))))
             ctx.logger.image("sds/image", _hwc(img), i)
 
     with ctx.stopwatch.stage("optimise"):
@@ -135,7 +135,8 @@ def sds_image(cfg, ctx) -> dict:
     big = F.interpolate(final, scale_factor=8, mode="nearest")
     save_png(ctx.path("final_x8.png"), _hwc(big))
     if frames:
-        big_frames = F.interpolate(torch.stack(frames).permute(0, 3, 1, 2), scale_factor=4, mode="nearest")
+        big_frames = F.interpolate(torch.stack(frames).float().div(255.0).permute(0, 3, 1, 2), scale_factor=4,
+                                   mode="nearest")
         save_gif(ctx.path("progress.gif"), big_frames.permute(0, 2, 3, 1), fps=float(cfg.fps))
     metrics = {"prompt": str(cfg.prompt), "guidance_scale": float(cfg.guidance_scale), "space": str(cfg.space),
                "sds_target": sds.target_space, "lr_warmup": warmup, "lr_final_ratio": final_ratio,
