@@ -222,6 +222,7 @@ def nerf_builtin(image_size: int = 64, n_train: int = 100, n_val: int = 4, n_tes
         raise UserError(f"nerf_builtin needs image_size >= 8, n_train >= 1, n_test >= 1, "
                         f"got {image_size}, {n_train}, {n_test}")
     bg = background_rgb(background)
+    box = scene_box_tensor(scene_box)                    # checked before any rendering
     elev = [float(e) for e in elevation_range]
     key = json.dumps([1, int(image_size), int(n_train), int(n_val), int(n_test), float(distance), float(fov),
                       bg.tolist(), int(antialias)] + ([] if elev == [-10.0, 70.0] else [elev]))
@@ -241,7 +242,6 @@ def nerf_builtin(image_size: int = 64, n_train: int = 100, n_val: int = 4, n_tes
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(path) as tmp:
             torch.save({"images": images.contiguous(), "key": key}, tmp)
-    box = scene_box_tensor(scene_box)
     data = MultiViewData(images.float(), cams, tr, va, te, bg, box, name="nerf_builtin", mesh=nerf_scene(),
                          up=torch.tensor([0.0, 1.0, 0.0]))
     return data if device is None else data.to(device)
