@@ -66,3 +66,18 @@ def test_bad_data_folders_exit_2_with_one_line(tmp_path):
         assert out.returncode == 2, out.stderr
         assert len(out.stderr.strip().splitlines()) == 1 and "Traceback" not in out.stderr
         assert not (tmp_path / "run").exists()       # nothing written: the run directory is removed too
+
+
+def test_a_resumed_train_nerf_run_keeps_its_before_picture_and_figure(compose, tmp_path, monkeypatch):
+    """before_val_psnr and before_after.png come from the untrained field: a resumed run carries
+    them in its checkpoint (it cannot render them again), equal to the uninterrupted run's."""
+    args = ("task=train_nerf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16", "data.n_train=4",
+            "data.n_val=1", "data.n_test=1", "time_budget=0", "tensorboard=false", f"data.cache_dir={tmp_path / 'c'}")
+    run_task(compose(*args), out_dir=tmp_path / "full")
+    monkeypatch.setenv("L3D_STOP_AT_STEP", "2")
+    with pytest.raises(RunInterrupted):
+        run_task(compose(*args), out_dir=tmp_path / "cut")
+    monkeypatch.delenv("L3D_STOP_AT_STEP")
+    run_task(compose(*args, "resume=true"), out_dir=tmp_path / "cut")
+    full, cut = read(tmp_path / "full"), read(tmp_path / "cut")
+    assert cut["before_val_psnr"] == full["before_val_psnr"] and (tmp_path / "cut" / "before_after.png").exists()

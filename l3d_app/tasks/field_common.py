@@ -37,6 +37,7 @@ class BeforeAfter:
     update, no random draw: the run's stream is untouched) and logs ``val/before_training``;
     ``after(picture)`` keeps each evaluation's picture; ``save(ctx)`` writes
     ``before_after.png`` (before above, last evaluation below) and returns ``{"before_val_psnr"}``.
+    A task checkpoints it with the run (``Trainable.extra``), so a resumed run keeps both.
     """
 
     def __init__(self):
@@ -51,6 +52,13 @@ class BeforeAfter:
 
     def after(self, picture: torch.Tensor) -> None:
         self.pictures["last"] = picture
+
+    def state_dict(self) -> Dict[str, object]:
+        return {"pictures": dict(self.pictures), "before_psnr": self.before_psnr}
+
+    def load_state_dict(self, state: Dict[str, object]) -> None:
+        self.pictures = dict(state["pictures"])
+        self.before_psnr = float(state["before_psnr"])
 
     def save(self, ctx) -> Dict[str, float]:
         if {"before", "last"} <= set(self.pictures):

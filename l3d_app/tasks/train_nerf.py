@@ -97,6 +97,7 @@ def train_nerf(cfg, ctx) -> dict:
     val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val
 
     before_after = BeforeAfter()
+    trainable.extra["before_after"] = before_after      # checkpointed: a resumed run keeps its "before"
     if len(val) and bool(cfg.before_after) and not (bool(cfg.resume) and ctx.path("checkpoint.pt").exists()):
         before_after.before(ctx, lambda: evaluate(val))
 

@@ -180,6 +180,7 @@ def volsdf(cfg, ctx) -> dict:
         len(val), len(data.test), int(cfg.supersample), int(cfg.val_supersample))
     resuming = bool(cfg.resume) and ctx.path("checkpoint.pt").exists()
     before_after, before_seconds = BeforeAfter(), None
+    trainable.extra["before_after"] = before_after      # checkpointed: a resumed run keeps its "before"
     if len(val) and bool(cfg.before_after) and not resuming:   # timed: the dearest validation (fuzzy start)
         t_before = time.perf_counter()
         before_after.before(ctx, lambda: evaluate(val, int(cfg.val_supersample)))
