@@ -58,9 +58,8 @@ def box(cfg, ctx) -> dict:
     if mode not in ("fit", "render"):
         raise UserError(f"box mode must be fit or render, got '{cfg.mode}'")
     center, size = ("render_center", "render_size") if mode == "render" else ("init_center", "init_size")
-    for key in (center, size, "true_center", "true_size"):
-        config_floats(cfg[key], key, 3)
-    if min(config_floats(cfg[size], size, 3)) <= 0:
+    vectors = {key: config_floats(cfg[key], key, 3) for key in (center, size, "true_center", "true_size")}
+    if min(vectors[size]) <= 0:
         raise UserError(f"{size} must be three positive side lengths, got {list(cfg[size])}")
     data = DATASETS.build({**cfg.data, "root": str(resolve_path(cfg.data.root))}, device=ctx.device)
     origins, dirs = camera_rays(data.cameras, normalize=True)            # (4, H, W, 3)
