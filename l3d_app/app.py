@@ -31,6 +31,7 @@ from l3d_app.runtime.device import resolve_device
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.precision import check_precision
 from l3d_app.runtime.seed import seed_everything
+from l3d_app.sweep_jobs import record_failed_job, sweep_job_label
 from l3d_app.tasks.common import require_run_keys
 from l3d_app.tasks.override_common import check_command_line_types
 
@@ -40,6 +41,8 @@ def run(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]:
 
     Bad input (``ValueError``, ``TypeError``, a config error) ends the process with a
     one-line message and exit status 2 (set ``L3D_DEBUG=1`` to see the traceback instead);
+    in a sweep the line names the job and :class:`~l3d_app.sweep_jobs.SweepJobFailed` is
+    raised instead, so Hydra goes on with the other jobs (``main.py`` exits 2 at the end);
     a run stopped by SIGINT/SIGTERM in its training loop saves its checkpoint and metrics, then
     exits with 130; stopped outside the loop (setting up, the test evaluation, the pictures)
     it exits with 130 and one line, its checkpoints so far kept.
@@ -59,7 +62,11 @@ def run(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]:
             raise
         if out_dir is None:
             remove_unused_run_dir()
-        print(f"l3d_app: error: {one_line(err)}", file=sys.stderr)
+        job = sweep_job_label() if out_dir is None else None
+        line = one_line(err) if job is None else f"{job}: {one_line(err)}"
+        print(f"l3d_app: error: {line}", file=sys.stderr)
+        if job is not None:              # a sweep goes on with its other jobs (l3d_app/sweep_jobs.py)
+            raise record_failed_job(line) from None
         sys.exit(2)
     except RunInterrupted as err:
         print(f"l3d_app: {err}", file=sys.stderr)

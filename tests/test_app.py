@@ -75,6 +75,29 @@ def test_cli_multirun_writes_one_directory_per_job(tmp_path):
     assert sizes == [16, 24]
 
 
+def test_cli_sweep_runs_every_job_past_bad_input(tmp_path):
+    """A job with bad input prints its line and the sweep goes on; exit 2 at the end."""
+    out = main_py("-m", "task=render360", "image_size=16,-4,24,0", "num_frames=2", f"hydra.sweep.dir={tmp_path}")
+    assert out.returncode == 2, out.stderr
+    errors = [line for line in out.stderr.splitlines() if "HYDRA" not in line]
+    assert errors == [
+        "l3d_app: error: sweep job #1 (task=render360 image_size=-4 num_frames=2): "
+        "image_size must be a positive number, got -4",
+        "l3d_app: error: sweep job #3 (task=render360 image_size=0 num_frames=2): "
+        "image_size must be a positive number, got 0",
+        "l3d_app: error: 2 sweep jobs stopped on bad input (#1, #3: the lines above); the other jobs ran to the end"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["0", "2", "multirun.yaml"]   # no folder for a bad job
+    sizes = [json.loads((tmp_path / job / "metrics.json").read_text())["image_size"] for job in ("0", "2")]
+    assert sizes == [16, 24]
+
+
+def test_cli_sweep_of_only_bad_jobs_leaves_nothing(tmp_path):
+    out = main_py("-m", "task=render360", "image_size=-4,0", "num_frames=2", f"hydra.sweep.dir={tmp_path / 'sweep'}")
+    assert out.returncode == 2, out.stderr
+    assert out.stderr.strip().splitlines()[-1].endswith("no job ran, no sweep directory left")
+    assert "Traceback" not in out.stderr and not (tmp_path / "sweep").exists()
+
+
 @pytest.mark.parametrize("args, needle", [
     (["task=nope"], "task"),
     (["image_sise=64"], "image_sise"),
