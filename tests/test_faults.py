@@ -81,3 +81,32 @@ def test_a_resumed_train_nerf_run_keeps_its_before_picture_and_figure(compose, t
     run_task(compose(*args, "resume=true"), out_dir=tmp_path / "cut")
     full, cut = read(tmp_path / "full"), read(tmp_path / "cut")
     assert cut["before_val_psnr"] == full["before_val_psnr"] and (tmp_path / "cut" / "before_after.png").exists()
+
+
+RESUMED_RATES = {
+    "train_nerf": ("task=train_nerf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16",
+                   "data.n_train=4", "data.n_val=1", "data.n_test=1", "time_budget=0", "batch_rays=64"),
+    "volsdf": ("task=volsdf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16", "data.n_train=4",
+               "data.n_val=1", "data.n_test=1", "time_budget=0", "batch_rays=64", "free_space.steps=0",
+               "pretrain_steps=5", "mesh_resolution=16", "eval_points=500", "before_after=false"),
+    "fit_point": FIT_POINT,
+}
+
+
+@pytest.mark.parametrize("task", sorted(RESUMED_RATES))
+def test_a_resumed_runs_timings_cover_the_whole_run(compose, tmp_path, monkeypatch, task):
+    """train_seconds (and a task's rays_per_second) of a resumed run count every step, the
+    interrupted part's too: rays_per_second x train_seconds / batch_rays gives back all the steps."""
+    cache = () if task == "fit_point" else (f"data.cache_dir={tmp_path / 'c'}",)
+    args = (*RESUMED_RATES[task], "tensorboard=false", *cache)
+    monkeypatch.setenv("L3D_STOP_AT_STEP", "2")
+    with pytest.raises(RunInterrupted):
+        run_task(compose(*args), out_dir=tmp_path)
+    first = read(tmp_path)["train_seconds"]
+    monkeypatch.delenv("L3D_STOP_AT_STEP")
+    run_task(compose(*args, "resume=true"), out_dir=tmp_path)
+    whole = read(tmp_path)
+    assert whole["train_seconds"] > first > 0
+    if "rays_per_second" in whole:
+        steps = whole["rays_per_second"] * whole["train_seconds"] / 64
+        assert steps == pytest.approx(whole["iters"], rel=1e-3), steps

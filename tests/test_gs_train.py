@@ -194,6 +194,8 @@ def test_gs_train_resume_is_bitwise_identical(compose, tmp_path, monkeypatch):
         assert torch.equal(a[name], b[name]), name
     for k in ("grad_accum", "count", "max_radii"):
         assert torch.equal(full["trainable"]["extra"]["strategy"][k], cut["trainable"]["extra"]["strategy"][k]), k
+    # the per-step wall / CPU seconds behind seconds_per_step_first_100 etc. cover every step of the run
+    assert len(full["trainable"]["extra"]["step_times"]) == len(cut["trainable"]["extra"]["step_times"]) == 36
     # progress.gif: one frame per validation of the whole run, the part before the stop included
     import imageio.v2 as imageio
 

@@ -60,8 +60,9 @@ class Trainable:
 
     ``extra`` holds any other picklable state to checkpoint (e.g. an occupancy grid as a
     tensor, a scheduler, a list of progress frames); objects with ``state_dict`` /
-    ``load_state_dict`` are handled; tensors and lists are restored in place (the task's own
-    reference to them stays valid).
+    ``load_state_dict`` are handled; tensors, lists and dicts are restored in place (the task's
+    own reference to them stays valid: e.g. a task's step counters and timings, which then cover
+    the resumed parts of a run).
     """
 
     modules: Dict[str, torch.nn.Module]
@@ -97,6 +98,9 @@ class Trainable:
                 self.extra[k].copy_(v)
             elif k in self.extra and isinstance(self.extra[k], list):
                 self.extra[k][:] = v
+            elif k in self.extra and isinstance(self.extra[k], dict):
+                self.extra[k].clear()
+                self.extra[k].update(v)
             else:
                 self.extra[k] = v
 

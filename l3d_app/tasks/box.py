@@ -114,8 +114,8 @@ def box(cfg, ctx) -> dict:
         "size_error": float((size - gt_s.cpu()).abs().max()),
         "psnr": round(final_psnr, 4),
         "iters": result.step,
-        "train_seconds": round(ctx.stopwatch.stages["train"], 4),
-        "rays_per_second": round(result.step * int(cfg.batch_rays) / max(ctx.stopwatch.stages["train"], 1e-9), 1),
+        "train_seconds": round(result.train_seconds, 4),     # the steps (evaluations excluded), resumed parts included
+        "rays_per_second": round(result.steps_run * int(cfg.batch_rays) / max(result.train_seconds, 1e-9), 1),
         "n_params": sum(p.numel() for p in model.parameters()),
     }
 

@@ -77,7 +77,7 @@ def fit_point(cfg, ctx) -> dict:
         "iters": result.step,
         "n_params": 3 * n,
         "n_points": n,
-        "train_seconds": round(ctx.stopwatch.stages["train"], 4),
+        "train_seconds": round(result.train_seconds, 4),   # steps only, resumed parts included
         "skipped_steps": result.skipped_steps,
         "interrupted": result.interrupted,
     }

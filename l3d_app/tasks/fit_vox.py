@@ -70,7 +70,7 @@ def fit_vox(cfg, ctx) -> dict:
         "target_cells": int(target.sum()),
         "voxel_size": R,
         "voxelize_seconds": round(ctx.stopwatch.stages["voxelize"], 4),
-        "train_seconds": round(ctx.stopwatch.stages["train"], 4),
+        "train_seconds": round(result.train_seconds, 4),   # steps only, resumed parts included
         "skipped_steps": result.skipped_steps,
         "interrupted": result.interrupted,
     }

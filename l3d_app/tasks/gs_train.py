@@ -112,6 +112,7 @@ def gs_train(cfg, ctx) -> dict:
                           schedulers=[sched])
     H, W = data.image_size
     tr, lam, info, step_times = data.train, float(cfg.ssim_lambda), {"width": W, "height": H}, []
+    trainable.extra["step_times"] = step_times      # checkpointed: the step costs cover the resumed parts of a run
 
     def degree(step: int) -> int:
         return min(int(cfg.sh_degree), int(horizon.nominal(step)) // int(cfg.sh_every))

@@ -277,7 +277,7 @@ def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Di
             "last_val_accuracy": round(last, 5),
             "selected_on": "val" if use_best else "last",
             "n_val": len(data.val), "history": result.history_rows(),
-            "train_seconds": ctx.stopwatch.stages["train"], "interrupted": result.interrupted}
+            "train_seconds": result.train_seconds, "interrupted": result.interrupted}
     return model, info
 
 

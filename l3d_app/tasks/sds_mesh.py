@@ -102,7 +102,6 @@ def sds_mesh(cfg, ctx) -> dict:
     ctx.logger.image_sequence("sds_mesh/turntable", frames)
     if not bool(torch.isfinite(after).all()):
         raise UserError("the optimised texture rendered non-finite values")
-    train_s = ctx.stopwatch.stages["train"]
     return {
         "prompt": prompt,
         "prior": str(cfg.prior.name),
@@ -111,8 +110,8 @@ def sds_mesh(cfg, ctx) -> dict:
         "guidance_scale": float(cfg.guidance_scale),
         "iters": result.step,
         "n_params": n_params,
-        "train_seconds": round(train_s, 4),
-        "seconds_per_iter": round(train_s / max(result.step, 1), 5),
+        "train_seconds": round(result.train_seconds, 4),   # steps only, resumed parts included
+        "seconds_per_iter": round(result.seconds_per_step, 5),
         "image_size": size,
         "turntable_size": int(cfg.turntable_size) or size,
         "skipped_steps": result.skipped_steps,

@@ -172,7 +172,6 @@ def sds_nerf(cfg, ctx) -> dict:
     save_gif(ctx.path("sds_nerf.gif"), frames, fps=float(cfg.fps))
     save_png(ctx.path("views.png"), torch.cat(list(frames[:: max(1, len(frames) // 4)][:4]), dim=0))
     ctx.logger.image_sequence("sds_nerf/turntable", frames)
-    train_s = ctx.stopwatch.stages["train"]
     return {
         "prompt": prompt,
         "prior": str(cfg.prior.name),
@@ -188,8 +187,8 @@ def sds_nerf(cfg, ctx) -> dict:
         "n_params": n_params,
         "image_size": size,
         "turntable_size": int(cfg.turntable_size) or size,
-        "train_seconds": round(train_s, 4),
-        "seconds_per_iter": round(train_s / max(result.step, 1), 5),
+        "train_seconds": round(result.train_seconds, 4),   # steps only, resumed parts included
+        "seconds_per_iter": round(result.seconds_per_step, 5),
         "skipped_steps": result.skipped_steps,
         "history": result.history_rows(),
         "interrupted": result.interrupted,

@@ -76,7 +76,7 @@ def svr_train(cfg, ctx) -> dict:
             "data_cfg": plain(cfg.data), "step": result.step}
     save_svr_model(ctx.path(MODEL_FILE), model, meta)
     metrics = {"decoder": str(decoder_cfg["name"]), "iters": result.step, "n_params": n_params(model),
-               "train_seconds": round(ctx.stopwatch.stages["train"], 4),
+               "train_seconds": round(result.train_seconds, 4),   # steps only, resumed parts included
                "data_seconds": round(ctx.stopwatch.stages["data"], 4),
                "train_objects": int(len(train_ids)), "val_objects": int(len(quick)),
                "skipped_steps": result.skipped_steps, "interrupted": result.interrupted,

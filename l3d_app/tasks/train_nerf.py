@@ -64,6 +64,7 @@ def train_nerf(cfg, ctx) -> dict:
     flat_o, flat_d, flat_rgb = origins[tr].reshape(-1, 3), dirs[tr].reshape(-1, 3), data.images[tr].reshape(-1, 3)
     n_rays, batch = flat_o.shape[0], int(cfg.batch_rays)
     stats = {"samples_per_ray": 0.0, "train_seconds": 0.0, "steps": 0}
+    trainable.extra["step_stats"] = stats      # checkpointed: the rates cover the resumed parts of a run
 
     # compile_field: the radiance calls go through torch.compile (the sampler's density probes stay eager)
     field = maybe_compile(model, enabled=bool(cfg.compile_field))

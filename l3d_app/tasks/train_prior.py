@@ -155,7 +155,7 @@ def train_prior(cfg, ctx) -> dict:
         "iters": result.step,
         "n_params": sum(p.numel() for m in live.values() for p in m.parameters()),
         "checkpoint_bytes": out_path.stat().st_size,
-        "train_seconds": round(ctx.stopwatch.stages["train"], 3),
+        "train_seconds": round(result.train_seconds, 3),   # steps only, resumed parts included
         "skipped_steps": result.skipped_steps,
         "interrupted": result.interrupted,
     })

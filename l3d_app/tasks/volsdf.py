@@ -164,6 +164,7 @@ def volsdf(cfg, ctx) -> dict:
     field_fn = field_with_gradient(model)
     stats = {"samples_per_ray": 0.0, "fine_samples_per_ray": 0.0, "train_seconds": 0.0, "cpu_seconds": 0.0,
              "steps": 0}
+    trainable.extra["step_stats"] = stats      # checkpointed: the rates cover the resumed parts of a run
 
     def render(o, d, **kw):
         return render_sdf_rays(field_fn, o, d, sampler, dens, field=model,
