@@ -73,6 +73,23 @@ def test_repeated_failures_restore_last_good_state_and_checkpoints_stay_finite(t
         assert torch.isfinite(tensor).all()
 
 
+def test_a_blow_up_to_finite_values_is_not_the_state_a_restore_brings_back(tmp_path):
+    """After step 4 the parameters jump to 1e30 (finite: the step passes the guard and a snapshot is
+    taken), the next losses overflow. The restore goes back to the snapshot before the jump, and the
+    fit then converges; restoring the latest snapshot would bring the 1e30 weights back each time."""
+    ctx = make_ctx(tmp_path)
+    model, trainable = make_problem()
+    fit = regression_step(ctx, model)
+
+    def blow_up(step):
+        if step == 4:
+            with torch.no_grad():
+                model.weight.fill_(1e30)
+    result = train(ctx, trainable, fit, iters=300, checkpoint_every=1, max_bad_steps=2, after_step=blow_up)
+    assert result.restores == 1 and result.skipped_steps == 2
+    assert float((model.weight.detach() - torch.tensor([[1.0, -2.0, 0.5]])).abs().max()) < 0.05
+
+
 def test_interrupt_then_resume_matches_uninterrupted_run(tmp_path):
     full_dir, cut_dir = tmp_path / "full", tmp_path / "cut"
     full_dir.mkdir(), cut_dir.mkdir()

@@ -19,7 +19,9 @@ optimiser and LR schedulers) and two callbacks, and gets, for free:
   and keeps a task's :class:`~l3d_app.runtime.horizon.Horizon` (``horizon=``) at the step
   it expects to stop at, so schedules that read it end with the run;
 * a NaN/Inf guard: a non-finite loss or gradient skips the step (nothing is applied) and
-  is logged; after ``max_bad_steps`` consecutive failures the last good state is restored;
+  is logged; after ``max_bad_steps`` consecutive failures the last good state is restored
+  (a snapshot taken every ``checkpoint_every`` steps, or every twentieth of ``iters``, that a
+  whole interval of clean steps followed: not the state a blow-up to huge finite values left);
 * checkpoints (``checkpoint.pt``, written atomically, never with non-finite parameters)
   every ``checkpoint_every`` steps, at the end, and on SIGINT/SIGTERM, after which the
   loop stops cleanly and the task writes its metrics so far;
@@ -284,7 +286,11 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
         print(f"l3d_app: note: {note}", file=sys.stderr)
         ctx.logger.text("train/resume", note)
     before = dict(history.get("counters", {}))      # the resumed parts' steps, seconds, skipped steps, restores
+    # the guard's restore point, promoted from the latest snapshot only once a whole snapshot
+    # interval after it ran clean: a step that blows the parameters up to huge but finite values
+    # passes the finite test, and the snapshot after it must not become what a restore brings back
     good_state = copy.deepcopy(trainable.state_dict())
+    pending_state: Optional[Dict[str, Any]] = None
     snapshot_every = checkpoint_every or max(1, iters // 20)
     bad_in_a_row = 0
     skipped, restores = int(before.get("skipped", 0)), int(before.get("restores", 0))
@@ -317,6 +323,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
             if not ok:
                 skipped += 1
                 bad_in_a_row += 1
+                pending_state = None            # the latest snapshot may hold the start of the blow-up
                 trainable.optimizer.zero_grad(set_to_none=True)
                 ctx.logger.scalar("guard/skipped_steps", skipped, step)
                 if bad_in_a_row >= max_bad_steps or not trainable.all_finite():
@@ -341,7 +348,9 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
             if eval_fn is not None and eval_every and done % eval_every == 0 and done < iters:
                 metrics = clock.timed_eval(lambda: _evaluate(ctx, eval_fn, done, history))
             if ok and done % snapshot_every == 0:
-                good_state = copy.deepcopy(trainable.state_dict())
+                if pending_state is not None:
+                    good_state = pending_state
+                pending_state = copy.deepcopy(trainable.state_dict())
             if checkpoint and checkpoint_every and done % checkpoint_every == 0:
                 history["counters"] = _counters(before, clock, skipped, restores)
                 save_checkpoint(ckpt_path, trainable, done, ctx.generator, history)
