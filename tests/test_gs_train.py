@@ -168,8 +168,49 @@ def test_gs_train_schedules_follow_the_steps_the_budget_lets_it_run(compose, tmp
     assert (mean_opacity < 0.03) if compressed else (mean_opacity > 0.06), mean_opacity
 
 
+def test_gs_train_refine_compresses_the_lr_and_ends_growth_by_the_steps_that_fit(compose, tmp_path, monkeypatch):
+    """schedule=refine, the loop's prediction faked to 13 of 26 steps, the run cut at 13: the means'
+    LR has decayed all the way (as under budget), while the opacity reset stays on its step cadence
+    (due at step 20, not reached: opacities untouched). The growth phase's end follows the steps
+    the budget leaves at the recent seconds per step: a budget with ~3 steps' worth of seconds left
+    ends it (logged strategy/until) far below strategy.until."""
+    from l3d_app.runtime import training
+    torch.set_num_threads(1)
+    monkeypatch.setattr(training._LoopClock, "predicted_steps", lambda self, *a: 13.0)
+    monkeypatch.setenv("L3D_STOP_AT_STEP", "13")
+    cfg = compose("task=gs_train", "schedule=refine", "iters=26", "lr_decay_steps=26", "eval_every=26",
+                  "data.image_size=24", "data.n_train=8", "data.n_test=1", "n_init=600", "strategy.start=1000",
+                  "strategy.opacity_reset_every=20", "strategy.reset_min_steps_left=0", "time_budget=100000",
+                  "log_every=1", f"data.cache_dir={tmp_path / 'cache'}")
+    with pytest.raises(RunInterrupted):
+        run_task(cfg, out_dir=tmp_path / "run")
+    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["trainable"]
+    means_lr = next(g["lr"] for g in state["optimizer"]["param_groups"] if g["name"] == "means")
+    decay = float(cfg.lr.means_final) / float(cfg.lr.means)
+    assert means_lr / state["schedulers"][0]["base_lrs"][0] == pytest.approx(decay, rel=1e-6)
+    assert float(torch.sigmoid(state["modules"]["gaussians"]["opacity_logits"]).mean()) > 0.06
+    until = {e.step: e.value for e in _events(tmp_path / "run").Scalars("strategy/until")}
+    assert until[1] == pytest.approx(3000.0 * 26 / 26)          # time to spare: the whole phase
+    # a step that takes 1 s (gs_train's step clock faked) under a 10 s budget: at step 3 at most
+    # 10 more fit, so the phase ends by 3000 x (3 + 10) / 26 = 1500 (no step time yet at step 1: 3000)
+    import time as real_time
+    import types
+
+    from l3d_app.tasks import gs_train as gs_task
+    ticks = iter(range(10 ** 6))
+    monkeypatch.setattr(gs_task, "time", types.SimpleNamespace(perf_counter=lambda: float(next(ticks)),
+                                                                process_time=real_time.process_time))
+    monkeypatch.setenv("L3D_STOP_AT_STEP", "3")
+    with pytest.raises(RunInterrupted):
+        run_task(compose("task=gs_train", "schedule=refine", "iters=26", "eval_every=26", "data.image_size=24",
+                         "data.n_train=8", "data.n_test=1", "n_init=600", "time_budget=10", "reserve=0", "log_every=1",
+                         f"data.cache_dir={tmp_path / 'cache'}"), out_dir=tmp_path / "tight")
+    until = {e.step: e.value for e in _events(tmp_path / "tight").Scalars("strategy/until")}
+    assert until[1] == 3000.0 and 0 < until[3] <= 1500.0, until
+
+
 def test_gs_train_rejects_an_unknown_schedule(compose, tmp_path):
-    with pytest.raises(UserError, match="schedule must be steps or budget"):
+    with pytest.raises(UserError, match="schedule must be steps, budget or refine"):
         run_task(compose("task=gs_train", "schedule=epochs", "tensorboard=false",
                          f"data.cache_dir={tmp_path / 'cache'}"), out_dir=tmp_path / "run")
 

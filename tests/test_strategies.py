@@ -213,6 +213,30 @@ def test_default_events_follow_a_compressed_schedule():
     assert seen == ["", "densify", "reset", "densify", "", ""]
 
 
+def test_default_growth_phase_ends_sooner_under_an_until_scale():
+    """info["until_scale"] 0.5 (gs_train's schedule=refine): densify every 2 steps from 2 and reset
+    every 4 steps on the real steps, until 16 x 0.5 = 8: densify at done 2, 4, 6, 8, the reset at 4
+    and 8, nothing after; without the scale (1) the events go on to 16."""
+    def events(scale):
+        m, opt = _model_and_adam()
+        s = DefaultStrategy(start=2, until=16, every=2, grad_threshold=10.0, opacity_reset_every=4, reset_value=0.01,
+                            max_world_scale=0.0)
+        s.initialize(m, opt, scene_extent=1.0)
+        m.opacity_logits.data[:] = 3.0
+        seen = []
+        for step in range(12):
+            info = {**_info(torch.ones(20), 20), **({"until_scale": scale} if scale != 1 else {})}
+            logs = s.step_post_backward(m, opt, step, info)
+            if logs:
+                seen.append(("densify", step + 1))
+            if float(m.opacity_logits.detach().max()) < 0:
+                seen.append(("reset", step + 1))
+            m.opacity_logits.data[:] = 3.0
+        return seen
+    assert events(0.5) == [("densify", 2), ("densify", 4), ("reset", 4), ("densify", 6), ("densify", 8), ("reset", 8)]
+    assert events(1) == events(0.5) + [("densify", 10), ("densify", 12), ("reset", 12)]
+
+
 def test_mcmc_events_follow_a_compressed_schedule():
     """Grow (every 2 in (start 1, until 9)) at nominal 2, 4, 6, 8: steps 1, 2, 3, 4 of a schedule
     covering two nominal steps per step; by step, at steps 2, 4, 6, 8 (0-based 1, 3, 5, 7)."""

@@ -16,6 +16,9 @@ under a time budget that stops the run early, the whole schedule is compressed i
 steps that fit); absent, ``(step, step + 1)``. A strategy reads its own schedule (start,
 until, every) through :meth:`Strategy.schedule` and
 :func:`~l3d_app.runtime.horizon.scheduled_event`, so that it follows the task's budget.
+``info["until_scale"]`` (optional, in ``(0, 1]``; gs_train's ``schedule=refine``: the steps the
+budget lets the run take over ``iters``) scales the step at which the strategy's growth phase
+ends (:meth:`Strategy.phase_end`), its events staying on the steps of ``info["schedule"]``.
 ``generator`` is the run's CPU generator (draw with :mod:`l3d_app.runtime.random`).
 ``step`` is 0-based (the step just taken). A strategy may resize the model's parameters;
 it must then swap the new ``Parameter`` objects into the optimiser
@@ -58,6 +61,11 @@ class Strategy:
         else ``(step, step + 1)``: 0-based ``step`` just taken)."""
         previous, now = info.get("schedule", (step, step + 1))
         return float(previous), float(now)
+
+    @staticmethod
+    def phase_end(until: float, info: Dict[str, Any]) -> float:
+        """The step at which the growth phase ends: ``until`` x ``info["until_scale"]`` (1 when absent)."""
+        return until * float(info.get("until_scale", 1.0))
 
     def state_dict(self) -> Dict[str, Any]:
         return {}

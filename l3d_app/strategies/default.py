@@ -51,7 +51,9 @@ class DefaultStrategy(Strategy):
     The steps above are those of the task's nominal schedule (``info["schedule"]``,
     :mod:`l3d_app.strategies.base`): by step by default; with gs_train's ``schedule=budget``
     a time budget that stops the run early compresses it, so that the densification phase,
-    the resets and the refinement after them keep their shares of the run.
+    the resets and the refinement after them keep their shares of the run; with
+    ``schedule=refine`` only ``until`` is scaled (densifying and resets stay every ``every`` /
+    ``opacity_reset_every`` steps, the phase ends sooner and leaves its share for refinement).
     """
 
     def __init__(self, start: int = 100, until: int = 2000, every: int = 100, grad_threshold: float = 2e-4,
@@ -92,15 +94,16 @@ class DefaultStrategy(Strategy):
     def step_post_backward(self, model, optimizer, step: int, info: Dict[str, Any],
                            generator: Optional[torch.Generator] = None) -> Dict[str, float]:
         previous, done = self.schedule(step, info)      # (step, step + 1) unless a time budget compresses it
+        until = self.phase_end(self.until, info)         # sooner under gs_train's schedule=refine
         logs: Dict[str, float] = {}
         grad = info["means2d"].grad
-        if previous >= self.until or grad is None:
+        if previous >= until or grad is None:
             return logs
         self.accumulate(grad, info["radii"].detach(), int(info["width"]), int(info["height"]))
-        if scheduled_event(previous, done, self.every, first=self.start, last=self.until):
+        if scheduled_event(previous, done, self.every, first=self.start, last=until):
             r = self.densify_and_prune(model, optimizer, generator, prune_screen=done > self.opacity_reset_every)
             logs = {k: float(r[k]) for k in ("n", "cloned", "split", "pruned")}
-        if (self.opacity_reset_every > 0 and scheduled_event(previous, done, self.opacity_reset_every, last=self.until)
+        if (self.opacity_reset_every > 0 and scheduled_event(previous, done, self.opacity_reset_every, last=until)
                 and info.get("steps_left", self.reset_min_steps_left) >= self.reset_min_steps_left):
             self.reset_opacity(model, optimizer)
         return logs

@@ -18,7 +18,11 @@ compressed into the steps that fit (in proportion to the training time: the pred
 the mean seconds per step so far) and the run ends with the refinement after the last
 densification; on the development scene ``ground`` at 128 px on 2 AVX2 cores it read lower
 than ``steps`` (val -0.32 / -0.14 dB on seeds 0 / 1: the splats reach the cap sooner, every
-later step is dearer, fewer steps fit; docs/measured/gaussians.md).
+later step is dearer, fewer steps fit; docs/measured/gaussians.md). ``schedule=refine``
+compresses the LR decay and the SH degree as ``budget`` does, but the strategy densifies and
+resets on its step cadence; only the end of its growth phase (``until``) is scaled by the
+steps that fit over ``iters`` (predicted from the recent seconds per step, as the reset guard
+does), so a budget-stopped run still ends with a refinement phase.
 Validation views are evaluated every ``eval_every`` steps (TensorBoard ``val/``, with a
 prediction | truth | error | depth picture); the test views once at the end.
 Outputs: ``test_views.gif``, ``progress.gif`` (a validation view over training),
@@ -73,14 +77,17 @@ def _initial_model(cfg, raw, data, generator):
     return model
 
 
+SCHEDULES = ("steps", "budget", "refine")
+
+
 @TASKS.register("gs_train")
 def gs_train(cfg, ctx) -> dict:
     """Train Gaussians; val figures during training, test figures once; gifs / ply / metrics."""
     require_positive(cfg, "iters", "eval_every", "sh_every", "lr_decay_steps", "tile_size", "log_every")
     if cfg.get("sh_degree") not in (0, 1, 2, 3):      # checked now, not when the schedule reaches it mid-run
         raise UserError(f"sh_degree must be 0, 1, 2 or 3, got {cfg.get('sh_degree')!r}")
-    if cfg.get("schedule") not in ("steps", "budget"):
-        raise UserError(f"schedule must be steps or budget, got {cfg.get('schedule')!r}")
+    if cfg.get("schedule") not in SCHEDULES:
+        raise UserError(f"schedule must be steps, budget or refine, got {cfg.get('schedule')!r}")
     raw = DATASETS.build(cfg.data)
     if len(raw.val) == 0:
         raise UserError(f"gs_train needs validation views and data '{cfg.data.name}' has none")
@@ -100,8 +107,8 @@ def gs_train(cfg, ctx) -> dict:
     # bench/profile_gaussians_step.py)
     opt = torch.optim.Adam([{"params": [p], "lr": r, "name": n} for n, p, r in groups], eps=float(cfg.adam_eps),
                            foreach=True)
-    on_budget = cfg.schedule == "budget"
-    horizon = Horizon(int(cfg.iters))     # schedule=budget: the loop predicts the budget's stop, every schedule ends there
+    on_budget, refine = cfg.schedule == "budget", cfg.schedule == "refine"
+    horizon = Horizon(int(cfg.iters))     # budget / refine: the loop predicts the budget's stop, the schedules end there
     decay = exponential(float(lr.means_final) / float(lr.means), int(cfg.lr_decay_steps))
     sched = torch.optim.lr_scheduler.LambdaLR(opt, [on_horizon(decay, horizon)] + [lambda s: 1.0] * (len(groups) - 1))
     strategy = STRATEGIES.build(cfg.strategy)
@@ -148,11 +155,20 @@ def gs_train(cfg, ctx) -> dict:
         return left
 
     def after_step(step: int) -> None:
-        info["schedule"] = horizon.advance(step + 1)      # the strategy's steps on the same schedule
-        info["steps_left"] = steps_left(step)
+        if refine:       # events by step; the growth phase ends in proportion to the steps that fit
+            info["schedule"] = (step, step + 1)
+            info["steps_left"] = steps_left(step)     # at the recent seconds per step: the splats only grow
+            info["until_scale"] = min(1.0, (step + 1 + info["steps_left"]) / int(cfg.iters))
+        else:
+            info["schedule"] = horizon.advance(step + 1)      # the strategy's steps on the same schedule
+            info["steps_left"] = steps_left(step)
         logs = strategy.step_post_backward(model, opt, step, info, ctx.generator)
         if on_budget and step % int(cfg.log_every) == 0:   # how far the compressed schedule has come
             logs = {**logs, "nominal_step": info["schedule"][1], "predicted_steps": horizon.steps}
+        elif refine and step % int(cfg.log_every) == 0:  # where the growth phase ends, the LR's nominal step
+            logs = {**logs, "nominal_step": horizon.nominal(step + 1), "predicted_steps": horizon.steps}
+            if getattr(strategy, "until", None) is not None:
+                logs["until"] = strategy.phase_end(float(strategy.until), info)
         if logs:
             ctx.logger.log_scalars({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
         step_times.append((time.perf_counter() - info["t0"], time.process_time() - info["c0"]))
@@ -177,7 +193,7 @@ def gs_train(cfg, ctx) -> dict:
                        checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="gs_train",
                        after_step=after_step, log_every=int(cfg.log_every), time_budget=float(cfg.time_budget),
                        reserve=float(cfg.reserve), reserve_evals=len(data.test) / len(data.val),
-                       horizon=horizon if on_budget else None)
+                       horizon=horizon if (on_budget or refine) else None)
     with torch.no_grad():
         pred, target, panel, test = evaluate(data.test, degree(result.step))
     test = {k: round(v, 4) for k, v in test.items()}
