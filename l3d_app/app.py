@@ -166,6 +166,11 @@ def run_task(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]
         if objective not in metrics:
             raise UserError(f"objective '{objective}' is not a metric of this task; "
                             f"known: {', '.join(sorted(metrics))}")
+        if (not str(objective).startswith("val_") and f"val_{objective}" in metrics
+                and sweep_job_label() is not None):
+            # a sweeper chooses by what main.py returns: never by the test split (read once, to report)
+            raise UserError(f"objective '{objective}' is this task's TEST figure; a sweep that chooses must "
+                            f"optimise its validation figure: objective=val_{objective} (the run's outputs are kept)")
         return float(metrics[objective])
     return None
 

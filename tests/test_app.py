@@ -91,6 +91,19 @@ def test_cli_sweep_runs_every_job_past_bad_input(tmp_path):
     assert sizes == [16, 24]
 
 
+def test_cli_sweep_refuses_a_test_figure_as_objective(tmp_path):
+    """A sweeper chooses by the objective: not by the test split where a validation figure exists
+    (fit_point reports val_chamfer beside chamfer); the job's outputs are kept, val_chamfer is accepted."""
+    args = ("task=fit_point", "num_points=300", "iters=4", "eval_every=2", "image_size=16", "num_frames=2",
+            "tensorboard=false")
+    out = main_py("-m", *args, "objective=chamfer", f"hydra.sweep.dir={tmp_path / 'test'}")
+    assert out.returncode == 2, out.stderr
+    assert "objective 'chamfer' is this task's TEST figure" in out.stderr and "objective=val_chamfer" in out.stderr
+    assert (tmp_path / "test" / "0" / "metrics.json").exists() and "Traceback" not in out.stderr
+    out = main_py("-m", *args, "objective=val_chamfer", f"hydra.sweep.dir={tmp_path / 'val'}")
+    assert out.returncode == 0, out.stderr
+
+
 def test_cli_sweep_of_only_bad_jobs_leaves_nothing(tmp_path):
     out = main_py("-m", "task=render360", "image_size=-4,0", "num_frames=2", f"hydra.sweep.dir={tmp_path / 'sweep'}")
     assert out.returncode == 2, out.stderr

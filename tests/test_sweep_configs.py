@@ -33,9 +33,9 @@ def test_slurm_launcher_composes():
 @pytest.mark.parametrize("sweeper, param", [("optuna_volsdf", "beta"), ("optuna_nerf", "lr")])
 def test_optuna_sweepers_compose(sweeper, param):
     needs("hydra_plugins.hydra_optuna_sweeper")
-    cfg = compose_hydra(f"hydra/sweeper={sweeper}", "objective=psnr")
+    cfg = compose_hydra(f"hydra/sweeper={sweeper}", "objective=val_psnr")
     assert param in cfg.hydra.sweeper.params and cfg.hydra.sweeper.direction == "maximize"
-    assert cfg.objective == "psnr"
+    assert cfg.objective == "val_psnr"
 
 
 def test_experiment_nerf_baseline_is_the_task_alias(compose):
