@@ -196,45 +196,39 @@ def test_course_keeps_the_set_fixed():
     assert m.log_scales.shape == (20, 1) and m.log_scales3.shape == (20, 3)
 
 
-def test_default_events_follow_a_compressed_schedule():
-    """info["schedule"] two nominal steps per step: densify (every 4 from 4, until 8) at steps 2
-    and 4, the opacity reset (every 6) at step 3, nothing after step 4 (nominal 8 = until)."""
+def _default_events(until, every, reset_every, steps, extra_info):
+    """(event, steps done) of a DefaultStrategy (start = every, every splat above the gradient
+    threshold, opacities put back after each step) over ``steps`` steps; ``extra_info(step)``
+    adds to each step's info (its schedule or until scale)."""
     m, opt = _model_and_adam()
-    s = DefaultStrategy(start=4, until=8, every=4, grad_threshold=10.0, opacity_reset_every=6, reset_value=0.01,
-                        max_world_scale=0.0)
+    s = DefaultStrategy(start=every, until=until, every=every, grad_threshold=10.0, opacity_reset_every=reset_every,
+                        reset_value=0.01, max_world_scale=0.0)
     s.initialize(m, opt, scene_extent=1.0)
     m.opacity_logits.data[:] = 3.0
     seen = []
-    for step in range(6):
-        info = {**_info(torch.ones(20), 20), "schedule": (2.0 * step, 2.0 * step + 2.0)}
-        logs = s.step_post_backward(m, opt, step, info)
-        seen.append(("densify" if logs else "") + ("reset" if float(m.opacity_logits.detach().max()) < 0 else ""))
+    for step in range(steps):
+        if s.step_post_backward(m, opt, step, {**_info(torch.ones(20), 20), **extra_info(step)}):
+            seen.append(("densify", step + 1))
+        if float(m.opacity_logits.detach().max()) < 0:
+            seen.append(("reset", step + 1))
         m.opacity_logits.data[:] = 3.0
-    assert seen == ["", "densify", "reset", "densify", "", ""]
+    return seen
+
+
+def test_default_events_follow_a_compressed_schedule():
+    """info["schedule"] two nominal steps per step: densify (every 4 from 4, until 8) at steps 2
+    and 4, the opacity reset (every 6) at step 3, nothing after step 4 (nominal 8 = until)."""
+    seen = _default_events(8, 4, 6, 6, lambda step: {"schedule": (2.0 * step, 2.0 * step + 2.0)})
+    assert seen == [("densify", 2), ("reset", 3), ("densify", 4)]
 
 
 def test_default_growth_phase_ends_sooner_under_an_until_scale():
     """info["until_scale"] 0.5 (gs_train's schedule=refine): densify every 2 steps from 2 and reset
     every 4 steps on the real steps, until 16 x 0.5 = 8: densify at done 2, 4, 6, 8, the reset at 4
     and 8, nothing after; without the scale (1) the events go on to 16."""
-    def events(scale):
-        m, opt = _model_and_adam()
-        s = DefaultStrategy(start=2, until=16, every=2, grad_threshold=10.0, opacity_reset_every=4, reset_value=0.01,
-                            max_world_scale=0.0)
-        s.initialize(m, opt, scene_extent=1.0)
-        m.opacity_logits.data[:] = 3.0
-        seen = []
-        for step in range(12):
-            info = {**_info(torch.ones(20), 20), **({"until_scale": scale} if scale != 1 else {})}
-            logs = s.step_post_backward(m, opt, step, info)
-            if logs:
-                seen.append(("densify", step + 1))
-            if float(m.opacity_logits.detach().max()) < 0:
-                seen.append(("reset", step + 1))
-            m.opacity_logits.data[:] = 3.0
-        return seen
-    assert events(0.5) == [("densify", 2), ("densify", 4), ("reset", 4), ("densify", 6), ("densify", 8), ("reset", 8)]
-    assert events(1) == events(0.5) + [("densify", 10), ("densify", 12), ("reset", 12)]
+    half = _default_events(16, 2, 4, 12, lambda step: {"until_scale": 0.5})
+    assert half == [("densify", 2), ("densify", 4), ("reset", 4), ("densify", 6), ("densify", 8), ("reset", 8)]
+    assert _default_events(16, 2, 4, 12, lambda step: {}) == half + [("densify", 10), ("densify", 12), ("reset", 12)]
 
 
 def test_mcmc_events_follow_a_compressed_schedule():
