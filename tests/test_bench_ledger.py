@@ -13,7 +13,7 @@ def _bench():
 
 def _row(scene, method, psnr, commit):
     return {"scene": scene, "role": "held out", "method": method, "psnr": psnr, "commit": commit,
-            "date": "2026-11-25", "load": 1.0}
+            "date": "2026-11-25", "load": 1.0, "seconds": 100.0}
 
 
 def test_merge_replaces_only_the_rows_that_were_run_and_keeps_the_order():
@@ -32,8 +32,8 @@ def test_merge_replaces_only_the_rows_that_were_run_and_keeps_the_order():
 
 def test_table_names_each_rows_commit_and_the_committed_ledger_is_complete():
     bench = _bench()
-    line = bench.table([_row("thin", "volsdf", 25.0, "ccc")]).splitlines()[-1]
-    assert line.startswith("| thin | held out | volsdf | 25.00 |") and line.endswith("| ccc, 2026-11-25, 1.0 |")
+    line = bench.table([_row("above", "volsdf", 25.0, "ccc")]).splitlines()[-1]
+    assert line.startswith("| above | held out | volsdf | 25.00 |") and line.endswith("| ccc, 2026-11-25, 1.0 |")
     copied = {**_row("thin", "gs_train", 38.0, "ddd"), "load": 2.0, "transcribed_from_table": True}
     assert bench.table([copied]).splitlines()[-1].endswith("| ddd, 2026-11-25, about 2.0 (from the older table) |")
     ledger = json.loads((REPO / "docs" / "benchmark_scenes.json").read_text())
@@ -41,3 +41,21 @@ def test_table_names_each_rows_commit_and_the_committed_ledger_is_complete():
     doc = (REPO / "docs" / "benchmark_scenes.md").read_text()
     for r in ledger:                       # the markdown table is the ledger, row for row
         assert bench.table([r]).splitlines()[-1] in doc
+
+
+def test_a_scene_a_methods_choice_looked_at_is_not_called_held_out_for_it(tmp_path):
+    """volsdf's w_mask was added after it failed on thin: thin's volsdf row says diagnosis, the
+    other methods' rows on thin stay held out; --render-only rewrites the table from the ledger
+    and keeps the section's 'Last call' sentence."""
+    bench = _bench()
+    rows = [_row("thin", "volsdf", 25.0, "ccc"), _row("thin", "gs_train", 38.0, "ccc")]
+    lines = bench.table(rows).splitlines()[-2:]
+    assert lines[0].startswith("| thin | diagnosis") and lines[1].startswith("| thin | held out | gs_train |")
+    doc = tmp_path / "bench.md"
+    doc.write_text("intro\n" + bench.section_text("Last call: `python bench/bench_scenes.py --methods volsdf` (2 cores).",
+                                                   "bench.json", rows[1:]) + "\noutro\n")
+    (tmp_path / "bench.json").write_text(json.dumps(rows))
+    bench.render_from_ledger(doc)
+    text = doc.read_text()
+    assert text.startswith("intro\n") and text.endswith("\noutro\n") and "--methods volsdf` (2 cores)." in text
+    assert "| thin | diagnosis" in text and (tmp_path / "bench.png").is_file()
