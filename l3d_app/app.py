@@ -166,13 +166,27 @@ def run_task(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]
         if objective not in metrics:
             raise UserError(f"objective '{objective}' is not a metric of this task; "
                             f"known: {', '.join(sorted(metrics))}")
-        if (not str(objective).startswith("val_") and f"val_{objective}" in metrics
-                and sweep_job_label() is not None):
-            # a sweeper chooses by what main.py returns: never by the test split (read once, to report)
-            raise UserError(f"objective '{objective}' is this task's TEST figure; a sweep that chooses must "
-                            f"optimise its validation figure: objective=val_{objective} (the run's outputs are kept)")
+        if sweep_job_label() is not None:          # a sweeper chooses by what main.py returns
+            require_choosing_objective(str(objective), metrics)
         return float(metrics[objective])
     return None
+
+
+def require_choosing_objective(objective: str, metrics: Dict[str, Any]) -> None:
+    """A sweep's objective chooses a setting, so it must not be a test figure (the test split is read
+    once, to report): where the task reports validation figures (``val_*``), the objective is one
+    of them or a cost (seconds, rates, counts, sizes: :func:`is_cost_figure`)."""
+    val = sorted(k for k in metrics if k.startswith("val_") and isinstance(metrics[k], (int, float)))
+    if val and not objective.startswith("val_") and not is_cost_figure(objective):
+        hint = f"objective=val_{objective}" if f"val_{objective}" in metrics else f"one of {', '.join(val)}"
+        raise UserError(f"objective '{objective}' is not a validation figure of this task (its test figures "
+                        f"report, they do not choose); a sweep optimises {hint} or a cost such as seconds "
+                        "(the run's outputs are kept)")
+
+
+def is_cost_figure(key: str) -> bool:
+    """Whether a metrics key is a cost rather than an accuracy figure: time, rates, counts, sizes."""
+    return "second" in key or key.startswith("n_") or key in ("iters", "steps", "frames_per_second")
 
 
 def _parallel_thread_budget() -> int:

@@ -98,10 +98,22 @@ def test_cli_sweep_refuses_a_test_figure_as_objective(tmp_path):
             "tensorboard=false")
     out = main_py("-m", *args, "objective=chamfer", f"hydra.sweep.dir={tmp_path / 'test'}")
     assert out.returncode == 2, out.stderr
-    assert "objective 'chamfer' is this task's TEST figure" in out.stderr and "objective=val_chamfer" in out.stderr
+    assert "objective 'chamfer' is not a validation figure" in out.stderr and "objective=val_chamfer" in out.stderr
     assert (tmp_path / "test" / "0" / "metrics.json").exists() and "Traceback" not in out.stderr
     out = main_py("-m", *args, "objective=val_chamfer", f"hydra.sweep.dir={tmp_path / 'val'}")
     assert out.returncode == 0, out.stderr
+
+
+def test_a_sweep_objective_is_a_validation_figure_or_a_cost():
+    """precision has no val_ twin in fit_point's metrics and is still a test figure; seconds is a cost."""
+    from l3d_app.app import require_choosing_objective
+
+    metrics = {"chamfer": 0.1, "precision": 0.9, "val_chamfer": 0.2, "val_f1": 0.8, "seconds": 3.0, "n_points": 5}
+    with pytest.raises(UserError, match="optimises one of val_chamfer, val_f1"):
+        require_choosing_objective("precision", metrics)
+    for ok in ("val_f1", "seconds", "n_points"):
+        require_choosing_objective(ok, metrics)
+    require_choosing_objective("coverage", {"coverage": 0.3, "seconds": 1.0})   # no validation split: nothing to prefer
 
 
 def test_cli_sweep_of_only_bad_jobs_leaves_nothing(tmp_path):
