@@ -5,7 +5,8 @@
 Reads every ``metrics.json`` below the folder (and each job's ``.hydra/overrides.yaml``
 when present), so it works for every task. Writes ``report.md``, ``report.csv`` and
 ``report.png`` (error against seconds, Pareto front marked) into ``--out`` (default: the
-folder itself). A job is on the Pareto front when no other job is at least as fast AND at
+folder itself). By default the front is drawn on a validation figure (``val_psnr`` ...) where
+every job reports one: a front chooses settings, and the test split only reports. A job is on the Pareto front when no other job is at least as fast AND at
 least as accurate, and strictly better in one of the two.
 """
 
@@ -67,15 +68,23 @@ def _overrides(run_dir: Path) -> str:
 
 
 def choose_error_key(jobs: Sequence[Job], requested: Optional[str] = None) -> str:
-    """The error figure to plot: ``requested`` or the first known key every job has."""
+    """The error figure to plot: ``requested``, else the first known key every job has, as its
+    validation figure ``val_<key>`` where every job reports that (a front picks settings, so it is
+    drawn on the split that may choose; the test figure stays in the table as a column)."""
     if requested:
         if not all(_number(j.metrics.get(requested)) is not None for j in jobs):
             raise UserError(f"not every job has a numeric '{requested}' in metrics.json")
         return requested
     for key in ERROR_KEYS:
-        if all(_number(j.metrics.get(key)) is not None for j in jobs):
-            return key
+        for candidate in (f"val_{key}", key):
+            if all(_number(j.metrics.get(candidate)) is not None for j in jobs):
+                return candidate
     raise UserError(f"no common error figure among {', '.join(ERROR_KEYS)}; pass --error KEY")
+
+
+def higher_is_better(key: str) -> bool:
+    """The direction of an error figure (``val_<key>`` as ``key``); unknown keys: higher."""
+    return ERROR_KEYS.get(key[4:] if key.startswith("val_") else key, True)
 
 
 def _number(value) -> Optional[float]:
@@ -100,11 +109,11 @@ def pareto_front(seconds: Sequence[float], errors: Sequence[float], higher_is_be
 
 def build_table(jobs: Sequence[Job], error_key: str) -> List[Dict[str, object]]:
     """Rows: job, overrides, the error figures present, seconds, size, pareto flag."""
-    higher = ERROR_KEYS.get(error_key, True)
+    higher = higher_is_better(error_key)
     seconds = [_number(j.metrics.get("seconds")) or float("nan") for j in jobs]
     errors = [float(j.metrics[error_key]) for j in jobs]
     front = pareto_front(seconds, errors, higher)
-    error_cols = [k for k in ERROR_KEYS if any(_number(j.metrics.get(k)) is not None for j in jobs)]
+    error_cols = [c for k in ERROR_KEYS for c in (f"val_{k}", k) if any(_number(j.metrics.get(c)) is not None for j in jobs)]
     if error_key not in error_cols:
         error_cols.insert(0, error_key)
     size_cols = [k for k in SIZE_KEYS if any(_number(j.metrics.get(k)) is not None for j in jobs)]
@@ -153,7 +162,7 @@ def plot(rows: Sequence[Dict[str, object]], error_key: str, path: Path) -> None:
         ax.plot(*zip(*front), color="tab:red", lw=1, label="Pareto front")
         ax.legend(fontsize=7)
     ax.set_xlabel("seconds (wall clock)")
-    ax.set_ylabel(error_key + (" (higher is better)" if ERROR_KEYS.get(error_key, True) else " (lower is better)"))
+    ax.set_ylabel(error_key + (" (higher is better)" if higher_is_better(error_key) else " (lower is better)"))
     ax.grid(alpha=0.3)
     fig.tight_layout()
     with atomic_path(path) as tmp:

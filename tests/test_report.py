@@ -57,3 +57,17 @@ def test_report_on_a_real_multirun(tmp_path):
     paths = make_report(sweep, error="coverage")
     rows = list(csv.DictReader(paths["csv"].open()))
     assert sorted(r["overrides"] for r in rows) == ["image_size=16 num_frames=2", "image_size=32 num_frames=2"]
+
+
+def test_the_front_is_drawn_on_validation_figures_where_every_job_has_them(tmp_path):
+    """psnr (test) would put job b on the front; val_psnr, which may choose, puts a there instead
+    (b is slower and worse on val); both columns stay in the table."""
+    for name, m in {"a": {"psnr": 30.0, "val_psnr": 31.0, "seconds": 10.0},
+                    "b": {"psnr": 32.0, "val_psnr": 30.5, "seconds": 20.0}}.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "metrics.json").write_text(json.dumps(m))
+    paths = make_report(tmp_path)
+    rows = list(csv.DictReader(paths["csv"].open()))
+    assert [r["pareto"] for r in rows] == ["True", "False"]
+    assert {"val_psnr", "psnr"} <= set(rows[0])
+    assert "val_psnr" in paths["md"].read_text().splitlines()[0]
