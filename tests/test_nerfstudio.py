@@ -2,6 +2,7 @@
 applied_transform and the ply points mapped back, bad poses named."""
 
 import json
+from dataclasses import replace
 
 import imageio.v2 as imageio
 import numpy as np
@@ -89,6 +90,28 @@ def test_split_files_and_default_splits(tmp_path):
     write_ns(tmp_path / "b", n=17)
     d = nerfstudio(str(tmp_path / "b"), val_every=4)
     assert d.test.tolist() == [0, 8, 16] and d.val.tolist() == [4, 9, 13]
+
+
+def test_split_files_are_made_disjoint(tmp_path, capsys):
+    """nerfstudio's own files list the same frames as val and test: validation is then carved from
+    the training views (a note says so), never read off the test views; a frame listed for training
+    and testing is refused; MultiViewData itself refuses overlapping splits."""
+    write_ns(tmp_path / "a", split_files=True)
+    meta = json.loads((tmp_path / "a" / "transforms.json").read_text())
+    meta["val_filenames"] = list(meta["test_filenames"])
+    (tmp_path / "a" / "transforms.json").write_text(json.dumps(meta))
+    d = nerfstudio(str(tmp_path / "a"), val_every=3)
+    assert d.test.tolist() == [0, 6] and d.val.tolist() == [4, 8] and d.train.tolist() == [1, 2, 5, 7]
+    assert "2 validation views are also test views; validation carved from the training views" in capsys.readouterr().err
+    meta["val_filenames"] = [meta["test_filenames"][0], "images/frame_00003.png"]      # one shared: dropped
+    (tmp_path / "a" / "transforms.json").write_text(json.dumps(meta))
+    assert nerfstudio(str(tmp_path / "a")).val.tolist() == [3]
+    meta["train_filenames"].append("images/frame_00006.png")
+    (tmp_path / "a" / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(UserError, match=r"views \[6\] are listed for both training and testing"):
+        nerfstudio(str(tmp_path / "a"))
+    with pytest.raises(UserError, match=r"views \[4\] are in both the val and the test split"):
+        replace(d, test=torch.tensor([0, 4]))
 
 
 def test_applied_transform_and_ply_points_map_back(tmp_path):

@@ -26,12 +26,15 @@ import numpy as np
 import torch
 
 from l3d_app.data.nerf_formats import _read_image, _to_float_rgb
-from l3d_app.data.nerf_views import MultiViewData, background_rgb, carve_val, scene_box_tensor
+from l3d_app.data.nerf_views import MultiViewData, background_rgb, carve_val, disjoint_splits, scene_box_tensor
 from l3d_app.geometry.pose_checks import check_rigid_poses
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import from_opengl_c2w, from_pytorch3d
 from l3d_app.registry import DATASETS
 from l3d_app.runtime.paths import resolve_path
+
+
+COURSE_VAL_EVERY = 10   # course_lego: validation carved from train when the file's val split is its test split
 
 
 @DATASETS.register("tiny_nerf")
@@ -124,5 +127,6 @@ def course_lego(root: str = None, scene: str = "lego", image_size: Optional[Sequ
         raise UserError(f"{pth}: the train split is empty")
     cams = from_pytorch3d(R, T, focal, pp, image_size=(H, W), in_ndc=True).to(dtype=torch.float32)
     box = scene_box_tensor(scene_box)
-    data = MultiViewData(images, cams, split[0], split[1], split[2], bg, box, name=f"course_lego:{scene}")
+    train, val, test = disjoint_splits(split[0], split[1], split[2], COURSE_VAL_EVERY, str(pth))
+    data = MultiViewData(images, cams, train, val, test, bg, box, name=f"course_lego:{scene}")
     return data if device is None else data.to(device)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import sys
 from dataclasses import dataclass, replace
 from typing import Optional, Sequence, Tuple
 
@@ -88,6 +89,12 @@ class MultiViewData:
         self.up = torch.nn.functional.normalize(torch.as_tensor(self.up, dtype=torch.float32).reshape(3), dim=0)
         if self.source_from_world is None:
             self.source_from_world = torch.eye(4, dtype=torch.float64)
+        for (a, name_a), (b, name_b) in (((self.train, "train"), (self.val, "val")), ((self.train, "train"), (self.test, "test")),
+                                         ((self.val, "val"), (self.test, "test"))):
+            shared = sorted(set(a.tolist()) & set(b.tolist()))
+            if shared:
+                raise UserError(f"{self.name or 'the data'}: views {shared[:5]} are in both the {name_a} and the {name_b} "
+                                f"split (the splits must be disjoint: the test views only report)")
         if self.points is not None and self.point_colors is not None \
                 and self.point_colors.shape != self.points.shape:
             raise ValueError(f"point_colors {tuple(self.point_colors.shape)} must match points "
@@ -117,6 +124,30 @@ def carve_val(train: torch.Tensor, val_every: int) -> Tuple[torch.Tensor, torch.
     pick = torch.zeros(len(train), dtype=torch.bool)
     pick[k - 1::k] = True
     return train[~pick], train[pick]
+
+
+def disjoint_splits(train: torch.Tensor, val: torch.Tensor, test: torch.Tensor, val_every: int,
+                    source: str) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Split lists read from a file (nerfstudio's ``*_filenames``, the course's ``split``), made
+    disjoint: a view in both train and test is refused (the file trains on its test views); val
+    loses the views it shares with test (nerfstudio's own files list the same frames as val and
+    test) and, when none is left, is carved from train (every ``val_every``-th, :func:`carve_val`),
+    with a note on stderr. Returns (train, val, test) index tensors."""
+    shared = sorted(set(train.tolist()) & set(test.tolist()))
+    if shared:
+        raise UserError(f"{source}: views {shared[:5]} are listed for both training and testing "
+                        "(the test views only report: list them in one split)")
+    test_set = set(test.tolist())
+    kept = val[torch.tensor([int(v) not in test_set for v in val.tolist()], dtype=torch.bool)] if len(val) else val
+    n_shared = len(val) - len(kept)
+    if n_shared:
+        if len(kept) == 0:
+            train, kept = carve_val(train, val_every)
+            how = f"validation carved from the training views instead (every {int(val_every)}th: {len(kept)} views)"
+        else:
+            how = f"they were dropped from validation ({len(kept)} left)"
+        print(f"l3d_app: note: {source}: {n_shared} validation views are also test views; {how}", file=sys.stderr)
+    return train, kept, test
 
 
 def scene_box_tensor(scene_box) -> torch.Tensor:

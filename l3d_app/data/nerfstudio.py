@@ -29,7 +29,7 @@ import torch
 
 from l3d_app.data.captures import (border_background, image_files, load_images, normalize_scene,
                                    scene_box, split_by_name)
-from l3d_app.data.nerf_views import MultiViewData, background_rgb
+from l3d_app.data.nerf_views import MultiViewData, background_rgb, disjoint_splits
 from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras, from_opengl_c2w
@@ -163,6 +163,7 @@ def nerfstudio(root: str = None, transforms: str = "transforms.json", downscale:
         train, val, test = split_idx["train"], split_idx["val"], split_idx["test"]
         if len(train) == 0:
             raise UserError(f"{path}: train_filenames is empty")
+        train, val, test = disjoint_splits(train, val, test, int(val_every), str(path))
     else:
         train, val, test = split_by_name(names, int(test_every), int(val_every))
     bg, known = border_background(imgs[train], background)
