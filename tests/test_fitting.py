@@ -159,11 +159,16 @@ def test_held_out_surface_streams_are_seeded_and_independent():
     for k in ("val", "test", "test_other"):
         assert a[k].shape == (500, 3) and torch.equal(a[k], b[k])   # the same for every run with that seed
     assert not torch.allclose(a["val"], a["test"]) and not torch.allclose(a["test"], a["test_other"])
-    # the streams are seeded apart: val = test + 1, a task's stream 1 = test + 2
+    # the streams are seeded apart: val = test + 1, a task's stream 1 = test + 2, seeds 1000 apart
     draw = lambda g: torch.rand(4, generator=g)
     assert not torch.equal(draw(eval_generator(cfg, "cpu", "val")), draw(eval_generator(cfg, "cpu", "test")))
     assert torch.equal(draw(eval_generator(cfg, "cpu", "test", stream=1)),
-                       draw(torch.Generator().manual_seed(3 + 7919 + 2)))
+                       draw(torch.Generator().manual_seed(3000 + 7919 + 2)))
+    # no seed's test samples are another seed's val samples (seed + offset + 1 was seed + 1's test)
+    from l3d_app.runtime.random import held_out_seed
+    seeds = {(s, split, k): held_out_seed(s, 7919, split, k) for s in range(50) for split in ("val", "test")
+             for k in range(3)}
+    assert len(set(seeds.values())) == len(seeds)
     with pytest.raises(ValueError):
         eval_generator(cfg, "cpu", "train")
 

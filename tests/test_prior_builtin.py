@@ -138,8 +138,8 @@ def test_train_prior_lr_schedule():
 
 
 def test_train_prior_reads_val_noise_every_evaluation_and_test_noise_once(compose, tmp_path, monkeypatch):
-    """The periodic evaluation samples from the VAL noise (seed + eval_seed_offset + 1) and writes
-    ``history`` / ``val_*``; the TEST noise (seed + eval_seed_offset) is drawn once, after training."""
+    """The periodic evaluation samples from the VAL noise (seed x 1000 + eval_seed_offset + 1) and writes
+    ``history`` / ``val_*``; the TEST noise (seed x 1000 + eval_seed_offset) is drawn once, after training."""
     import json
     import l3d_app.tasks.train_prior as tp
     from l3d_app.app import run_task
@@ -155,7 +155,7 @@ def test_train_prior_reads_val_noise_every_evaluation_and_test_noise_once(compos
                   "batch_size=4", "checkpoint_every=0", "seed=5", "threads=1")
     run_task(cfg, out_dir=tmp_path)
     m = json.loads((tmp_path / "metrics.json").read_text())
-    assert seeds == [5 + 7 + 1, 5 + 7 + 1, 5 + 7]          # val at steps 2 and 4, then test once
+    assert seeds == [5007 + 1, 5007 + 1, 5007]          # val at steps 2 and 4, then test once
     assert [h["step"] for h in m["history"]] == [2, 4]
     assert "val_sample_match_pixel" in m and "sample_match_pixel" in m
     assert m["history"][-1]["sample_match_pixel"] == pytest.approx(m["val_sample_match_pixel"], abs=1e-4)

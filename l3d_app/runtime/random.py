@@ -45,3 +45,18 @@ def randint(low: int, high: int, shape: Sequence[int], generator: Optional[torch
 def randperm(n: int, generator: Optional[torch.Generator], device: Device = None) -> torch.Tensor:
     """A random permutation of ``range(n)`` (int64) on ``device``."""
     return torch.randperm(int(n), generator=generator, device=draw_device(generator, device)).to(device or "cpu")
+
+
+HELD_OUT_STREAMS = 1000     # seeds apart: a run's held-out streams never meet another seed's
+
+
+def held_out_seed(seed: int, offset: int, split: str, stream: int = 0) -> int:
+    """The seed of a held-out sample stream: ``seed * 1000 + offset + 2 * stream`` (+ 1 for
+    ``split="val"``). Val and test streams never share a seed, neither within a run nor across
+    run seeds (an odd and an even number apart; streams < 500), so a setting chosen on one seed's
+    val samples is not reported on another seed's identical test samples."""
+    if split not in ("val", "test"):
+        raise ValueError(f"split must be 'val' or 'test', not {split!r}")
+    if not 0 <= int(stream) < HELD_OUT_STREAMS // 2:
+        raise ValueError(f"stream must lie in [0, {HELD_OUT_STREAMS // 2}), got {stream}")
+    return int(seed) * HELD_OUT_STREAMS + int(offset) + 2 * int(stream) + (1 if split == "val" else 0)

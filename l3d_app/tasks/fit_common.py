@@ -14,6 +14,7 @@ from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.sampling import sample_points_on_mesh
 from l3d_app.registry import CAMERA_PATHS, DATASETS, RENDERERS
 from l3d_app.runtime.media import save_gif
+from l3d_app.runtime.random import held_out_seed
 from l3d_app.tasks.common import check_output_knobs, render_frames, require_nonnegative, require_positive
 
 Shape = Union[Mesh, PointCloud, None]
@@ -29,13 +30,12 @@ def load_target_mesh(cfg, device) -> Mesh:
 
 def eval_generator(cfg, device, split: str = "test", stream: int = 0) -> torch.Generator:
     """A generator for held-out evaluation samples, independent of the training draws and
-    the same for every run with that seed: seeded ``seed + eval_seed_offset + 2 * stream``,
-    plus one for ``split="val"``, so that the val and test streams (and a task's further
-    ``stream`` s, e.g. draws on the fitted surface) never share a draw."""
-    if split not in ("val", "test"):
-        raise ValueError(f"split must be 'val' or 'test', not {split!r}")
-    offset = int(cfg.eval_seed_offset) + 2 * int(stream) + (1 if split == "val" else 0)
-    return torch.Generator(device="cpu").manual_seed(int(cfg.seed) + offset)   # CPU: the same draws on any device
+    the same for every run with that seed: seeded :func:`~l3d_app.runtime.random.held_out_seed`
+    (``seed * 1000 + eval_seed_offset + 2 * stream``, plus one for ``split="val"``), so that the val
+    and test streams (and a task's further ``stream`` s, e.g. draws on the fitted surface) never
+    share a draw, within a run or across seeds."""
+    seed = held_out_seed(int(cfg.seed), int(cfg.eval_seed_offset), split, int(stream))
+    return torch.Generator(device="cpu").manual_seed(seed)   # CPU: the same draws on any device
 
 
 def held_out_surface(mesh: Mesh, n: int, cfg, device) -> Dict[str, torch.Tensor]:

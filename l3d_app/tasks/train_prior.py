@@ -38,6 +38,7 @@ from l3d_app.registry import TASKS
 from l3d_app.runtime.lr_schedules import warmup_cosine
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.paths import resolve_path
+from l3d_app.runtime.random import held_out_seed
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import require_fraction, require_positive
 from l3d_app.tasks.prior_common import full_prompts, image_grid
@@ -120,10 +121,11 @@ def train_prior(cfg, ctx) -> dict:
     samples: Dict[str, torch.Tensor] = {}
 
     def evaluate(_i: int, split: str) -> Dict[str, float]:
-        """DDIM samples from the split's own noise: val = seed + eval_seed_offset + 1 (every
-        evaluation), test = seed + eval_seed_offset (once, at the end)."""
+        """DDIM samples from the split's own noise (:func:`~l3d_app.runtime.random.held_out_seed`):
+        val = seed * 1000 + eval_seed_offset + 1 (every evaluation), test = seed * 1000 +
+        eval_seed_offset (once, at the end)."""
         out = {}
-        g = torch.Generator("cpu").manual_seed(int(cfg.seed) + int(cfg.eval_seed_offset) + (split == "val"))  # same draws on any device
+        g = torch.Generator("cpu").manual_seed(held_out_seed(int(cfg.seed), int(cfg.eval_seed_offset), split))  # any device
         for s in spaces:
             if s == "latent" and _i <= ae_iters:
                 continue
