@@ -74,3 +74,15 @@ def test_gradient_colors_blend_along_axis():
     torch.testing.assert_close(out.vert_colors[z.argmax()], torch.tensor([1.0, 0.0, 0.0]))
     with pytest.raises(UserError):
         gradient_colors(mesh, "w")
+
+
+def test_turntable_azimuth_offset_puts_views_between_the_frames():
+    """sds_mesh / sds_nerf watch their runs on views half a step off the reported turntable:
+    4 views offset by 7.5 degrees lie at azimuths 7.5 + 90 k, none on the 24 frames (15 degree steps)."""
+    frames = turntable(24, 3.0, 0.0, 40.0, 16)
+    views = turntable(4, 3.0, 0.0, 40.0, 16, azimuth_offset=7.5)
+    azimuth = lambda c: torch.atan2(c[:, 0], c[:, 2]) * 180.0 / math.pi   # noqa: E731 (about +Y, elevation 0)
+    a_f, a_v = azimuth(frames.centers()), azimuth(views.centers())
+    steps = ((a_v - a_f[0]) % 360.0) / 15.0
+    assert torch.allclose(steps - steps.floor(), torch.full_like(steps, 0.5), atol=1e-4), steps
+    assert torch.allclose((a_v[1:] - a_v[:-1]) % 360.0, torch.full((3,), 90.0), atol=1e-3)

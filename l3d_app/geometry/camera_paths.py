@@ -37,17 +37,19 @@ def cameras_up(cams: Cameras) -> torch.Tensor:
 
 @CAMERA_PATHS.register("turntable")
 def turntable(num_frames: int, distance: float, elevation: float, fov: float, image_size: int,
-              at: Sequence[float] = (0.0, 0.0, 0.0), device=None) -> Cameras:
+              at: Sequence[float] = (0.0, 0.0, 0.0), device=None, azimuth_offset: float = 0.0) -> Cameras:
     """``num_frames`` cameras evenly spaced in azimuth over 360 degrees (the last frame
     stops one step short of the first, so the gif loops without a repeated frame).
 
-    distance in world units, elevation and fov in degrees, image_size in pixels (square).
+    distance in world units, elevation and fov in degrees, image_size in pixels (square);
+    azimuth_offset (degrees) turns every frame (e.g. half a step: views between another
+    turntable's frames).
     """
     if num_frames <= 0:
         raise UserError(f"num_frames must be positive, got {num_frames}")
     if distance <= 0:
         raise UserError(f"distance must be positive, got {distance}")
-    azim = torch.arange(num_frames, dtype=torch.float32, device=device) * (360.0 / num_frames)
+    azim = torch.arange(num_frames, dtype=torch.float32, device=device) * (360.0 / num_frames) + float(azimuth_offset)
     R, t = look_at(distance, elevation, azim, at=at, device=device)
     return Cameras.from_fov(R, t, fov, image_size, image_size)
 

@@ -61,6 +61,11 @@ def sds_mesh(cfg, ctx) -> dict:
     dist_range, elev_range, fov_range = (list(cfg[k]) for k in ("distance_range", "elevation_range", "fov_range"))
     cams_360 = turntable(int(cfg.num_frames), float(cfg.eval_distance), float(cfg.eval_elevation),
                          float(cfg.eval_fov), int(cfg.turntable_size) or size, device=ctx.device)
+    # the periodic check's own views, half a turntable step off its frames: the final match rate
+    # (read once, on the turntable) is not the figure the run was watched by
+    cams_val = turntable(min(int(cfg.eval_views), int(cfg.num_frames)), float(cfg.eval_distance),
+                         float(cfg.eval_elevation), float(cfg.eval_fov), int(cfg.turntable_size) or size,
+                         device=ctx.device, azimuth_offset=180.0 / int(cfg.num_frames))
     n_params = sum(p.numel() for p in field.parameters())
 
     def render_turntable(desc: str) -> torch.Tensor:
@@ -84,8 +89,7 @@ def sds_mesh(cfg, ctx) -> dict:
                 "t": out.t.float().mean()}
 
     def eval_fn(step: int) -> Dict[str, float]:
-        idx = torch.linspace(0, len(cams_360) - 1, min(int(cfg.eval_views), len(cams_360))).round().long()
-        frames = renderer(mesh, cams_360[idx.to(ctx.device)])["image"]
+        frames = renderer(mesh, cams_val)["image"]
         ctx.logger.image("sds_mesh/front", frames[0], step)
         rate = score_frames(frames, prompt)["match"]
         return {} if rate is None else {"match_rate": rate}

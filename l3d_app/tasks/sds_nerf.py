@@ -146,14 +146,18 @@ def sds_nerf(cfg, ctx) -> dict:
 
     cams_360 = turntable(int(cfg.num_frames), float(cfg.eval_distance), float(cfg.eval_elevation),
                          float(cfg.eval_fov), int(cfg.turntable_size) or size, device=ctx.device)
+    # the periodic check's own views, half a turntable step off its frames: the final match rate
+    # (read once, on the turntable) is not the figure the run was watched by
+    cams_val = turntable(min(int(cfg.eval_views), int(cfg.num_frames)), float(cfg.eval_distance),
+                         float(cfg.eval_elevation), float(cfg.eval_fov), int(cfg.turntable_size) or size,
+                         device=ctx.device, azimuth_offset=180.0 / int(cfg.num_frames))
 
     def render_turntable(cams: Cameras, shading: str) -> Dict[str, torch.Tensor]:
         return {k: v.detach() for k, v in render_shaded_views(field, cams, shading, chunk=int(cfg.chunk),
                                                        need_normals=False, **render_kw).items()}
 
     def eval_fn(step: int) -> Dict[str, float]:
-        idx = torch.linspace(0, len(cams_360) - 1, min(int(cfg.eval_views), len(cams_360))).round().long()
-        out = render_turntable(cams_360[idx.to(ctx.device)], "albedo")
+        out = render_turntable(cams_val, "albedo")
         ctx.logger.image("sds_nerf/front", out["image"][0].clamp(0, 1), step)
         rate = score_frames(out["image"].clamp(0, 1), prompt)["match"]
         return {"opacity": float(out["opacity"].mean()), **({} if rate is None else {"match_rate": rate})}
