@@ -96,7 +96,10 @@ def test_surface_tradeoff_small_run(compose, tmp_path):
     assert metrics["mc_24_surface_error"] < metrics["mc_8_surface_error"]
     for key in ("points_200_seconds", "mc_8_seconds", "mc_24_seconds"):
         assert metrics[key] >= 0
-    assert metrics["chamfer"] == min(v for k, v in metrics.items() if k.endswith("_chamfer"))
+    # best_setting: the lowest chamfer on a second reference (val); chamfer: its figure on the first
+    assert metrics["selected_on"] == "val" and metrics["best_setting"] in ("points_3000", "mc_24")
+    assert metrics["chamfer"] == metrics[f"{metrics['best_setting']}_chamfer"]
+    assert metrics["val_chamfer"] != metrics["chamfer"] and metrics["val_chamfer"] > 0
     csv_lines = (tmp_path / "tradeoff.csv").read_text().strip().splitlines()
     assert len(csv_lines) == 1 + 4 and csv_lines[0].startswith("method,setting,seconds,chamfer")
     assert "| marching_cubes | 24 |" in (tmp_path / "tradeoff.md").read_text()

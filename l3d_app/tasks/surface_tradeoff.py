@@ -12,7 +12,10 @@ perfect points have nearest-neighbour gaps), so for the meshes we also report
 true surface (world units), which isolates the marching-cubes discretisation error.
 
 Time: parametric sampling alone; SDF grid evaluation + marching cubes (not the metric's
-sampling). Writes tradeoff.md / tradeoff.csv, logs scalars and a markdown table.
+sampling). Writes tradeoff.md / tradeoff.csv, logs scalars and a markdown table. The summary
+``best_setting`` is the lowest chamfer against a second, independent reference (``val_chamfer``);
+``chamfer`` is that setting's figure against the first (a minimum over noisy estimates read on
+the sample that picked it would be biased low).
 """
 
 from __future__ import annotations
@@ -81,6 +84,9 @@ def surface_tradeoff(cfg, ctx) -> dict:
     sdf = Torus(R, r)
     reference = torus_points(n_ref, R, r, torch.Generator().manual_seed(seed + int(cfg.reference_seed_offset)),
                              area_uniform=True).points
+    # a second, independent reference chooses best_setting; the first reports its chamfer (read once)
+    reference_val = torus_points(n_ref, R, r, torch.Generator().manual_seed(seed + int(cfg.reference_seed_offset) + 1),
+                                 area_uniform=True).points
     # warm-up so the first timed setting does not pay one-off allocation costs
     torus_points(16, R, r, torch.Generator().manual_seed(0))
     sdf_to_mesh(sdf, 8, colors=None)
@@ -101,6 +107,7 @@ def surface_tradeoff(cfg, ctx) -> dict:
             key = f"mc_{value}"
         chamfer = float(chamfer_distance(points, reference, backend=backend))
         rows.append({"method": method, "setting": value, "seconds": seconds, "chamfer": chamfer,
+                     "val_chamfer": float(chamfer_distance(points, reference_val, backend=backend)),
                      "surface_error": surface_error, "num_points": points.shape[0], "num_faces": faces,
                      "key": key})
         scalars = {f"surface_tradeoff/{key}/chamfer": chamfer, f"surface_tradeoff/{key}/seconds": seconds}
@@ -132,7 +139,9 @@ def surface_tradeoff(cfg, ctx) -> dict:
         if row["surface_error"] is not None:
             metrics[f"{row['key']}_surface_error"] = row["surface_error"]
             metrics[f"{row['key']}_faces"] = row["num_faces"]
-    best = min(rows, key=lambda row: row["chamfer"])
-    metrics["chamfer"] = best["chamfer"]
+    best = min(rows, key=lambda row: row["val_chamfer"])     # chosen on the second reference ...
+    metrics["chamfer"] = best["chamfer"]                      # ... reported on the first
+    metrics["val_chamfer"] = best["val_chamfer"]
     metrics["best_setting"] = best["key"]
+    metrics["selected_on"] = "val"
     return metrics
