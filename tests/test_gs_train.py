@@ -259,3 +259,23 @@ def test_colors_from_views_median_of_the_pixels_seen():
     c = colors_from_views(pts, imgs, cams)
     torch.testing.assert_close(c[0], torch.tensor([1.0, 0.0, 0.0]))
     torch.testing.assert_close(c[1:], torch.full((2, 3), 0.5))
+
+
+def test_gs_train_scene_extent_reads_the_training_cameras_only(compose, tmp_path, monkeypatch):
+    """The extent that scales the means' LR and the densification thresholds comes from the
+    training cameras (3DGS); the test cameras' poses take no part in training."""
+    from l3d_app.registry import DATASETS
+    from l3d_app.strategies.default import DefaultStrategy
+
+    seen = {}
+    real = DefaultStrategy.initialize
+    monkeypatch.setattr(DefaultStrategy, "initialize",
+                        lambda self, model, opt, extent: (seen.setdefault("extent", extent), real(self, model, opt, extent))[1])
+    cfg = compose("task=gs_train", "iters=1", "eval_every=1", "data.image_size=24", "data.n_train=8", "data.n_test=3",
+                  "n_init=200", "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
+    run_task(cfg, out_dir=tmp_path / "run")
+    data = DATASETS.build(cfg.data)
+    spread = lambda c: float((c - c.mean(0)).norm(dim=-1).max())    # noqa: E731
+    train_only, every = spread(data.cameras[data.train].centers()), spread(data.cameras.centers())
+    assert seen["extent"] == pytest.approx(float(cfg.extent_margin) * train_only, rel=1e-6)
+    assert abs(train_only - every) > 1e-3 * every          # the test cameras would have moved it

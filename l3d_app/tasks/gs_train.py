@@ -93,7 +93,7 @@ def gs_train(cfg, ctx) -> dict:
         raise UserError(f"gs_train needs validation views and data '{cfg.data.name}' has none")
     data = raw.to(ctx.device)
     model = _initial_model(cfg, raw, data, ctx.generator).to(ctx.device)
-    centres = data.cameras.centers()
+    centres = data.cameras[data.train].centers()       # the training cameras only (3DGS): no test pose shapes training
     extent = float(cfg.extent_margin) * float((centres - centres.mean(0)).norm(dim=-1).max())
     lr = cfg.lr
     groups = [("means", model.means, float(lr.means) * extent), ("scales", model.log_scales, float(lr.scales)),
