@@ -180,7 +180,8 @@ def table(rows: List[dict]) -> str:
     for r in rows:
         size = r.get("n_gaussians") or r.get("n_params")
         cham = "" if r.get("chamfer_pct") is None else f"{r['chamfer_pct']:.2f} / {r['chamfer_obs_pct']:.2f}"
-        lines.append(f"| {r['scene']} | {role_of(r)} | {r['method']} | {fmt(r.get('psnr'), '.2f')} | "
+        method = r["method"] + (f" ({' '.join(r['overrides'])}: not the defaults)" if r.get("overrides") else "")
+        lines.append(f"| {r['scene']} | {role_of(r)} | {method} | {fmt(r.get('psnr'), '.2f')} | "
                      f"{fmt(r.get('ssim'), '.3f')} | {fmt(r.get('seconds'), '.0f')} | {size or ''} | {cham} | "
                      f"{fmt(r.get('f1_02_obs'), '.3f')} | {fmt(r.get('f1_05_obs'), '.3f')} | {fmt(r.get('phantom_pct'), '.1f')} | "
                      f"{r.get('commit', '?')}, {r.get('date', '?')}, {load_text(r)} |")
@@ -238,6 +239,8 @@ def main() -> None:
         for method in args.methods:
             m = run_method(method, scene, args.out, args.threads, args.baseline_budget, args.reuse, args.override)
             row = {"scene": scene.name, "role": info["role"], "method": method}
+            if args.override:      # not the defaults: the row says so (the table prints them beside the method)
+                row["overrides"] = list(args.override)
             if m is not None:
                 row.update(m["measured_at"])
                 row.update({k: m.get(k) for k in ("psnr", "ssim", "seconds", "n_params", "n_gaussians", "iters")})

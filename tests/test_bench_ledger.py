@@ -59,3 +59,8 @@ def test_a_scene_a_methods_choice_looked_at_is_not_called_held_out_for_it(tmp_pa
     text = doc.read_text()
     assert text.startswith("intro\n") and text.endswith("\noutro\n") and "--methods volsdf` (2 cores)." in text
     assert "| thin | diagnosis" in text and (tmp_path / "bench.png").is_file()
+
+
+def test_a_row_run_with_overrides_says_it_is_not_the_defaults():
+    row = {**_row("above", "gs_train", 30.0, "eee"), "overrides": ["iters=10"]}
+    assert "| gs_train (iters=10: not the defaults) |" in _bench().table([row])
