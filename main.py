@@ -37,6 +37,11 @@ def cli() -> None:
 
         print(f"l3d_app: error: {config_error_line(err)}", file=sys.stderr)
         sys.exit(2)
+    except ValueError as err:    # Hydra's own command-line conflicts (-m with --cfg); a run's errors end in app.run
+        if os.environ.get("L3D_DEBUG", "").strip() not in ("", "0"):
+            raise
+        print(f"l3d_app: error: {' '.join(str(err).split())}", file=sys.stderr)
+        sys.exit(2)
     except OSError as err:       # the file system refused: a run directory that is a file, no permission, disk full
         if os.environ.get("L3D_DEBUG", "").strip() not in ("", "0"):
             raise

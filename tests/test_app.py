@@ -158,6 +158,12 @@ def test_cli_config_errors_are_one_line_exit_2(tmp_path, args, needle):
     assert not (tmp_path / "run").exists()
 
 
+def test_cli_hydra_flag_conflict_is_one_line_exit_2():
+    out = main_py("-m", "task=render360", "--cfg", "job")
+    assert out.returncode == 2 and out.stderr.strip() == (
+        "l3d_app: error: Only one of --run, --multirun, --cfg, --info and --shell_completion can be specified")
+
+
 def test_cli_run_directory_that_is_a_file_exits_2(tmp_path):
     (tmp_path / "taken").write_text("not a folder")
     out = main_py("num_frames=2", "image_size=16", f"hydra.run.dir={tmp_path / 'taken'}")
