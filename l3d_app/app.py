@@ -186,7 +186,7 @@ def require_choosing_objective(objective: str, metrics: Dict[str, Any]) -> None:
 
 def is_cost_figure(key: str) -> bool:
     """Whether a metrics key is a cost rather than an accuracy figure: time, rates, counts, sizes."""
-    return "second" in key or key.startswith("n_") or key in ("iters", "steps", "frames_per_second")
+    return "second" in key or key.startswith("n_") or key in ("iters", "steps")
 
 
 def _parallel_thread_budget() -> int:
