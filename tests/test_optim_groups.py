@@ -1,7 +1,6 @@
-"""Every optimiser of conf/optim/ builds for the radiance-field tasks that offer optim= (the task's own
-schedule knobs reach only the optimiser that has them: train_nerf's lr_decay, volsdf's warm-up).
-box, neural_sdf and sds_nerf still set their default optimiser's own keys in their optim blocks, so
-another optim= there is refused in one line (unknown key), not yet offered."""
+"""Every optimiser of conf/optim/ builds for every task that offers optim= (the task's own schedule
+knobs reach only the optimiser that has them: train_nerf's lr_decay, volsdf's warm-up, box's
+lr_final_factor, neural_sdf's lr_final_ratio)."""
 
 from pathlib import Path
 
@@ -12,7 +11,7 @@ from conftest import REPO
 from l3d_app.runtime.optim import build_optimizer
 
 OPTIMS = sorted(p.stem for p in (REPO / "conf" / "optim").glob("*.yaml"))
-TASKS = ("train_nerf", "nerf_baseline", "volsdf")
+TASKS = ("train_nerf", "nerf_baseline", "volsdf", "box", "neural_sdf", "sds_nerf")
 
 
 @pytest.mark.parametrize("task", TASKS)
@@ -31,6 +30,10 @@ def test_every_optimiser_builds_for_every_task_that_offers_the_group(compose, ta
     ("nerf_baseline", "adam_step", {"decay": 0.8, "decay_every": 20000}),
     ("volsdf", "warmup_cosine", {"warmup_steps": 50, "final_ratio": 0.05}),
     ("volsdf", "adam_cosine", {"final_ratio": 0.05}),
+    ("box", "adam_exp", {"lr": 0.02, "final_factor": 0.01}),
+    ("neural_sdf", "adam_cosine", {"lr": 0.001, "final_ratio": 0.05}),
+    ("neural_sdf", "warmup_cosine", {"final_ratio": 0.05}),
+    ("sds_nerf", "adam", {"lr": 0.01, "eps": 1e-15}),
 ])
 def test_task_schedule_knobs_reach_the_optimiser_that_has_them(compose, task, optim, expected):
     cfg = compose(f"task={task}", f"optim={optim}", "lr_decay=0.5" if task == "train_nerf" else "seed=0")
