@@ -253,7 +253,7 @@ def test_resume_matches_uninterrupted(compose, cache_dir, tmp_path, monkeypatch)
     assert best_full["epoch"] == best_cut["epoch"]
 
 
-def test_robustness_command(compose, cache_dir, tmp_path):
+def test_robustness_command(compose, cache_dir, tmp_path, capsys):
     overrides = tiny(cache_dir, "epochs=8", "rotation_degrees=[0,90]",
                      "num_points_list=[400,100,100000]", "num_vis=0", "vis_failures=false")
     run_task(compose("task=pointnet_robustness", *overrides), out_dir=tmp_path / "a")
@@ -277,6 +277,15 @@ def test_robustness_command(compose, cache_dir, tmp_path):
                      f"cls_checkpoint={tmp_path / 'a' / 'cls' / 'best.pt'}"), out_dir=tmp_path / "b")
     m2 = json.loads((tmp_path / "b" / "metrics.json").read_text())
     assert m2["cls_rot90"] == pytest.approx(m["cls_rot90"]) and "seg_rot0" not in m2
+    assert m2["cls_selected_on"] == "val"                     # best.pt says where it was chosen
+    # a best.pt that does not say (written before it was recorded; older ones were chosen on test)
+    old = torch.load(tmp_path / "a" / "cls" / "best.pt", weights_only=False)
+    old.pop("selected_on")
+    torch.save(old, tmp_path / "old.pt")
+    run_task(compose("task=pointnet_robustness", *overrides, "robust_kinds=[cls]",
+                     f"cls_checkpoint={tmp_path / 'old.pt'}"), out_dir=tmp_path / "c")
+    m3 = json.loads((tmp_path / "c" / "metrics.json").read_text())
+    assert m3["cls_selected_on"] == "unknown" and "chosen on the validation split" in capsys.readouterr().err
 
 
 def test_missing_course_files_is_user_error(compose, tmp_path):

@@ -258,7 +258,7 @@ def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Di
                        batch_points=int(cfg.eval_batch_points)).accuracy
         if acc > float(best[0]):
             best[0], best[1] = acc, epoch
-            save_best(ctx.path(BEST), model, {**meta, "epoch": epoch, "accuracy": acc})
+            save_best(ctx.path(BEST), model, {**meta, "epoch": epoch, "accuracy": acc, "selected_on": "val"})
         return {"accuracy": acc, "epoch": epoch}
 
     spe_eval = steps_per_epoch * int(cfg.eval_every_epochs)

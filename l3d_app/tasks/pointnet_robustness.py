@@ -22,6 +22,7 @@ point count, and the markdown tables as text) and ``robustness.md``.
 
 from __future__ import annotations
 
+import sys
 import time
 from typing import Any, Dict, List
 
@@ -49,7 +50,13 @@ def _model_for(cfg, ctx, kind: str):
         model, meta = load_model(path, ctx.device)
         if meta["kind"] != kind:
             raise UserError(f"{kind}_checkpoint {path} holds a '{meta['kind']}' model")
-        return model, data, {"source": str(path)}
+        selected_on = str(meta.get("selected_on", "unknown"))
+        if selected_on != "val":
+            note = (f"{kind}_checkpoint {path} does not say it was chosen on the validation split "
+                    "(a best.pt written before 2026-11-27 does not say; older ones were chosen on test)")
+            print(f"l3d_app: note: {note}", file=sys.stderr)
+            ctx.logger.text(f"{kind}/selected_on", note)
+        return model, data, {"source": str(path), "selected_on": selected_on}
     sub = ctx.out_dir / kind
     sub_ctx = RunContext(out_dir=sub, device=ctx.device,
                          generator=seed_everything(int(cfg.seed), ctx.device),
@@ -83,6 +90,7 @@ def pointnet_robustness(cfg, ctx) -> dict:
     for kind in kinds:
         model, data, info = _model_for(cfg, ctx, kind)
         metrics[f"{kind}_model"] = info["source"]
+        metrics[f"{kind}_selected_on"] = info["selected_on"]          # val, or unknown for an older best.pt
         if "val_accuracy" in info:
             metrics[f"{kind}_val_accuracy"] = info["val_accuracy"]
             metrics["selected_on"] = info["selected_on"]
