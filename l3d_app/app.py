@@ -153,6 +153,12 @@ def run_task(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]
         logger.text("config", "```\n" + OmegaConf.to_yaml(cfg, resolve=True) + "\n```")
         metrics = ctx.write_metrics(task(cfg, ctx) or {})
         logger.hparams(ctx.params, metrics)
+        if "over_budget_seconds" in metrics:
+            warning = (f"the task took {metrics['seconds']:.1f} s, {metrics['over_budget_seconds']:.1f} s over its "
+                       f"time_budget of {ctx.time_budget:g} s (what follows training did not fit: "
+                       "metrics.json over_budget_seconds)")
+            print(f"l3d_app: warning: {warning}", file=sys.stderr)
+            logger.text("budget", warning)
     except (*USER_ERRORS, KeyboardInterrupt):
         logger.discard_if_at_most(1)      # bad input (or a stop) before anything but the config was logged
         raise

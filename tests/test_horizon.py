@@ -55,10 +55,12 @@ def test_on_horizon_reads_the_factor_at_the_nominal_step():
     assert f(50) == pytest.approx(0.05) and f(25) == pytest.approx(0.05 + 0.95 * 0.5)
 
 
-def run_budgeted(tmp_path, monkeypatch, with_horizon: bool, eval_cost=lambda n: 10.0):
+def run_budgeted(tmp_path, monkeypatch, with_horizon: bool, eval_cost=lambda n: 10.0, eval_price=10.0):
     """Budget 300 s, reserve 10 s, 3 evaluations' worth of rendering after the loop; steps
     1 s, a 10 s validation after every 20th step. The loop stops at the first k with
-    k + 10 floor(k / 20) + 1 + 10 (1 + 3) + 10 >= 300: k = 169."""
+    k + 10 floor(k / 20) + 1 + 10 (1 + 3) + 10 >= 300: k = 169. ``eval_price``: a validation the
+    task timed before training (so the loop runs no pricing validation of its own; the horizon
+    reads only the loop's validations)."""
     clock = types.SimpleNamespace(elapsed=0.0)
     monkeypatch.setattr(training, "time", types.SimpleNamespace(perf_counter=lambda: clock.elapsed))
     ctx = RunContext(out_dir=tmp_path, device=torch.device("cpu"), generator=seed_everything(0),
@@ -82,7 +84,7 @@ def run_budgeted(tmp_path, monkeypatch, with_horizon: bool, eval_cost=lambda n: 
         seen["evals"].append(step)
         return {"x": 0.0}
     result = training.train(ctx, trainable, step_fn, iters=1000, eval_fn=eval_fn, eval_every=20,
-                             reserve_evals=3.0, horizon=horizon if with_horizon else None)
+                             reserve_evals=3.0, horizon=horizon if with_horizon else None, eval_price=eval_price)
     return result, seen
 
 
@@ -110,7 +112,7 @@ def test_the_next_evaluation_costs_what_the_latest_one_did(tmp_path, monkeypatch
     it stops at the first k with k + 30 + 2 (floor(k / 20) - 1) + 1 + 2 (1 + 3) + 10 >= 300,
     k = 231 (the mean of the costs so far, 50 / 11 s, would stop it at 221)."""
     result, seen = run_budgeted(tmp_path, monkeypatch, with_horizon=True,
-                                eval_cost=lambda n: 30.0 if n == 0 else 2.0)
+                                eval_cost=lambda n: 30.0 if n == 0 else 2.0, eval_price=30.0)
     assert result.budget_stop and result.step == 231
     # after the second validation the prediction is k + (300 - elapsed - 8 - 10) / 1.1: 230.9 at k = 40
     assert seen["steps"][40] == pytest.approx(40 + (300 - 72 - 8 - 10) / 1.1)

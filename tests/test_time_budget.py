@@ -2,6 +2,7 @@
 ``time_budget`` / ``reserve`` knobs unless a task passes its own. A fake stopwatch advances 10 s
 per step, so the stopping step follows from arithmetic, not from this machine's speed."""
 
+import pytest
 import torch
 
 from l3d_app.runtime.context import RunContext
@@ -60,14 +61,69 @@ def test_the_knob_reaches_a_task_that_never_names_it(compose, tmp_path):
     import json
     run_task(compose("task=fit_vox", "iters=40", "eval_every=20", "num_frames=2", "image_size=16",
                      "time_budget=1e-6"), out_dir=tmp_path)
-    assert json.loads((tmp_path / "metrics.json").read_text())["iters"] == 1
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["iters"] == 1
+    # what the budget did not hold is reported, not hidden; the preview gif, spent, is not written
+    assert metrics["over_budget_seconds"] == pytest.approx(metrics["seconds"] - 1e-6, abs=0.02)
+    assert not (tmp_path / "fit_vox.gif").exists()
+
+
+def test_a_run_within_its_budget_reports_no_overrun(compose, tmp_path):
+    from l3d_app.app import run_task
+    import json
+    run_task(compose("task=fit_vox", "iters=4", "eval_every=2", "num_frames=2", "image_size=16",
+                     "time_budget=3600", "tensorboard=false"), out_dir=tmp_path)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["iters"] == 4 and "over_budget_seconds" not in metrics and (tmp_path / "fit_vox.gif").is_file()
+
+
+class Clocked:
+    """A fake ctx whose stopwatch advances ``per_frame`` seconds for every frame rendered."""
+
+    def __init__(self, budget, elapsed, per_frame):
+        self.time_budget, self.per_frame = budget, per_frame
+        self.stopwatch = FakeStopwatch()
+        self.stopwatch.elapsed = elapsed
+        self.notes = []
+        self.logger = type("L", (), {"text": lambda _s, tag, text: self.notes.append((tag, text))})()
+
+    def seconds_left(self):
+        return RunContext.seconds_left(self)
+
+
+def test_a_preview_gif_gets_the_evenly_spread_frames_that_fit(monkeypatch):
+    from l3d_app.geometry.camera_paths import turntable
+    from l3d_app.tasks import budget_common
+
+    cams = turntable(36, 3.0, 10.0, 60.0, 8)
+    ctx = Clocked(budget=100.0, elapsed=90.0, per_frame=0.5)
+    seen = []
+    monkeypatch.setattr(budget_common.time, "perf_counter", lambda: ctx.stopwatch.elapsed)
+
+    def render(c):
+        seen.append(c.R.clone())
+        ctx.stopwatch.elapsed += ctx.per_frame * len(c)
+        return torch.arange(len(c), dtype=torch.float32)[:, None, None, None].expand(len(c), 2, 2, 3) + len(seen)
+    frames = budget_common.frames_within_budget(ctx, cams, render, "g/budget")
+    # 10 s left: the first frame (0.5 s) priced, then 9.5 s // 0.5 = 19 more -> 20 frames of 36, spread
+    assert frames.shape[0] == 20 and ctx.stopwatch.elapsed <= 100.0
+    idx = (torch.arange(1, 20) * 36) // 20
+    assert torch.equal(seen[0], cams.R[:1]) and torch.equal(seen[1], cams.R[idx])
+    assert "20 of 36" in ctx.notes[0][1]
+    # no budget: every frame, no note; a spent budget: none, not even the priced first frame
+    assert budget_common.frames_within_budget(Clocked(0.0, 5.0, 0.5), cams, render, "g").shape[0] == 36
+    spent = Clocked(budget=10.0, elapsed=10.5, per_frame=0.5)
+    calls = len(seen)
+    assert budget_common.frames_within_budget(spent, cams, render, "g") is None and len(seen) == calls
+    assert "spent" in spent.notes[0][1]
 
 
 def test_the_reserve_in_evaluations_follows_the_measured_evaluation_cost(tmp_path):
-    # steps cost 10 s and every 2nd step a validation costs 30 s on the fake clock, so after
-    # step k it reads 10 k + 30 floor(k / 2); 3 evaluations' worth of rendering follow the loop.
-    # Stop at the first k with 10 k + 30 floor(k / 2) + 30 (1 + 3) >= 300: k = 7 reads 160
-    # (+120 = 280), k = 8 reads 200 (+120 = 320) -> 8 steps
+    # steps cost 10 s and a validation 30 s on the fake clock: one before the first step (under a
+    # budget the loop prices the final validation and the test views from the start), then every
+    # 2nd step, so after step k it reads 10 k + 30 (1 + floor(k / 2)); 3 evaluations' worth of
+    # rendering follow the loop. Stop at the first k with 10 k + 30 (1 + floor(k / 2)) + 30 (1 + 3)
+    # >= 300: k = 5 reads 110 (+120 = 230), k = 6 reads 180 (+120 = 300) -> 6 steps
     ctx, trainable, step = setup(tmp_path, budget=300.0)
     evals = {"n": 0}
 
@@ -81,22 +137,50 @@ def test_the_reserve_in_evaluations_follows_the_measured_evaluation_cost(tmp_pat
         evals["n"] += 1
         return {"x": 0.0}
     result = train(ctx, trainable, step_fn, iters=100, eval_fn=eval_fn, eval_every=2, reserve_evals=3.0)
-    assert result.step == 8 and result.budget_stop
-    # without the evaluations' reserve the same loop runs on: 10 k + 30 floor(k / 2) + 30 >= 300 at k = 11
+    assert result.step == 6 and result.budget_stop
+    assert [s for s, _ in result.history][:2] == [0, 2]          # the pricing validation, logged at step 0
+    # without the evaluations' reserve the same loop runs on: 10 k + 30 (1 + floor(k / 2)) + 30 >= 300 at k = 10
     ctx, trainable, step = setup(tmp_path / "b", budget=300.0)
     evals["n"] = 0
     result = train(ctx, trainable, step_fn, iters=100, eval_fn=eval_fn, eval_every=2)
-    assert result.step > 8 and result.budget_stop
+    assert result.step == 10 and result.budget_stop
+
+
+def test_a_budget_stop_before_the_first_periodic_validation_keeps_time_for_the_test_views(tmp_path):
+    # steps cost 10 s, a validation 30 s, the first periodic one at step 50 (never reached); 3
+    # evaluations' worth follow the loop, budget 300 s. Priced from the start (30 s: the pricing
+    # validation, or a task's own timed validation via eval_price), the loop stops at the first k
+    # with 10 k + 30 + 30 (1 + 3) >= 300: k = 15. Unpriced (the former behaviour) it ran to
+    # 10 k + 0 >= 300, k = 30, and the final validation and test views overran the budget by 120 s.
+    ctx, trainable, step = setup(tmp_path, budget=300.0)
+
+    def step_fn(i):
+        out = step(i)
+        ctx.stopwatch.elapsed += 30.0                # the pricing validation's seconds
+        return out
+
+    def eval_fn(s):
+        ctx.stopwatch.elapsed += 30.0
+        return {"x": 0.0}
+    result = train(ctx, trainable, step_fn, iters=100, eval_fn=eval_fn, eval_every=50, reserve_evals=3.0)
+    assert result.step == 15 and result.budget_stop
+    assert [s for s, _ in result.history] == [0, 15]
+    # a task's own timed validation (e.g. before training) prices it instead: no step-0 validation
+    ctx, trainable, step = setup(tmp_path / "b", budget=300.0)
+    result = train(ctx, trainable, step_fn, iters=100, eval_fn=eval_fn, eval_every=50, reserve_evals=3.0,
+                   eval_price=30.0)
+    assert result.step == 15 and [s for s, _ in result.history] == [15]
 
 
 def test_a_stale_evaluation_price_is_refreshed_before_a_budget_stop(tmp_path):
     # steps cost 10 s; a validation every 50 steps, the first 40 s, later ones 5 s (a fuzzy model
-    # renders slower than the sharp one); 10 evaluations' worth follow the loop; budget 1100 s.
-    # After step k (50 < k) the clock reads 10 k + 40. Priced at 40 s the loop stops at the first k
-    # with 10 k + 40 + 40 x 11 >= 1100: k = 62. That price is 12 steps old (>= max(1, 50 // 5) = 10),
-    # so the loop validates again (5 s: 665 s) and re-prices: 665 + 5 x 11 = 720 < 1100 -> on.
-    # Then 10 k + 45 + 55 >= 1100 first at k = 100, where the periodic validation (5 s) is fresh:
-    # 1050 + 55 = 1105 -> stop, no further refresh and no second final validation.
+    # renders slower than the sharp one); 10 evaluations' worth follow the loop; budget 1100 s. The
+    # pricing validation before the first step costs 5 s. After step k (50 < k) the clock reads
+    # 10 k + 45. Priced at 40 s the loop stops at the first k with 10 k + 45 + 40 x 11 >= 1100: k = 62.
+    # That price is 12 steps old (>= max(1, 50 // 5) = 10), so the loop validates again (5 s: 670 s)
+    # and re-prices: 670 + 5 x 11 = 725 < 1100 -> on. Then 10 k + 50 + 55 >= 1100 first at k = 100,
+    # where the periodic validation (5 s) is fresh: 1055 + 55 = 1110 -> stop, no further refresh and
+    # no second final validation.
     ctx, trainable, step = setup(tmp_path, budget=1100.0)
     seen = {"extra": 0.0, "steps": []}
 
@@ -106,12 +190,12 @@ def test_a_stale_evaluation_price_is_refreshed_before_a_budget_stop(tmp_path):
         return out
 
     def eval_fn(s):
-        cost = 5.0 if seen["steps"] else 40.0
+        cost = 40.0 if s == 50 else 5.0
         seen["extra"] += cost
         ctx.stopwatch.elapsed += cost
         seen["steps"].append(s)
         return {"x": 0.0}
     result = train(ctx, trainable, step_fn, iters=1000, eval_fn=eval_fn, eval_every=50, reserve_evals=10.0)
     assert result.budget_stop and result.step == 100
-    assert seen["steps"] == [50, 62, 100]
-    assert [s for s, _ in result.history] == [50, 62, 100]
+    assert seen["steps"] == [0, 50, 62, 100]
+    assert [s for s, _ in result.history] == [0, 50, 62, 100]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict
+from typing import Any, Dict, Optional
 
 import torch
 
@@ -34,10 +34,20 @@ class RunContext:
         p.parent.mkdir(parents=True, exist_ok=True)
         return p
 
+    def seconds_left(self) -> Optional[float]:
+        """Seconds of ``time_budget`` not yet spent (negative once overrun); None without a budget.
+        A task writes its optional pictures (gifs) only where they still fit."""
+        return self.time_budget - self.stopwatch.elapsed if self.time_budget > 0 else None
+
     def write_metrics(self, metrics: Dict[str, Any]) -> Dict[str, Any]:
-        """Write ``metrics.json`` (final figures + wall-clock ``seconds``) atomically."""
+        """Write ``metrics.json`` (final figures + wall-clock ``seconds``) atomically; under a
+        ``time_budget`` the task overran, also ``over_budget_seconds`` (what its budget did not hold:
+        the caller warns)."""
         out = dict(metrics)
         out.setdefault("seconds", round(self.stopwatch.elapsed, 4))
+        left = self.seconds_left()
+        if left is not None and left < 0:
+            out["over_budget_seconds"] = round(-left, 2)
         if self.interrupted:
             out["interrupted"] = True
         out["device"] = str(self.device)

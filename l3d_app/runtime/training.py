@@ -230,7 +230,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
           after_step: Optional[Callable[[int], None]] = None,
           time_budget: Optional[float] = None, reserve: Optional[float] = None,
           reserve_evals: float = 0.0, horizon: Optional[Horizon] = None, log_prefix: str = "train",
-          checkpoint: bool = True) -> TrainResult:
+          checkpoint: bool = True, eval_price: Optional[float] = None) -> TrainResult:
     """Run ``iters`` optimisation steps.
 
     Args:
@@ -268,6 +268,12 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
             training logs under its own name).
         checkpoint: False: no ``checkpoint.pt`` is written or read (a stage whose result the
             task keeps itself); ``resume`` and ``checkpoint_every`` are then ignored.
+        eval_price: seconds of one validation the task has already timed (a validation before
+            training). Under a time budget the loop must know what a validation costs before its
+            first budget test (the final validation and ``reserve_evals`` are priced by it): without
+            ``eval_price`` it validates once before its first step (logged at that step). Until the
+            loop has timed a validation of its own, only the stop test reads this price, not the
+            ``horizon``.
 
     ``step_fn`` runs under ``autocast(ctx.precision, ctx.device)`` (the ``precision=`` knob:
     ``fp32`` does nothing, ``bf16`` autocasts the forward); backward and the optimiser step
@@ -305,6 +311,21 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
     clock = _LoopClock(float(time_budget or 0.0), float(reserve or 0.0), float(reserve_evals or 0.0),
                        now=lambda: ctx.stopwatch.elapsed)
     precision = getattr(ctx, "precision", "fp32")
+    if clock.budget > 0 and start < iters:
+        if clock.reserve + ctx.stopwatch.elapsed >= clock.budget:
+            note = (f"time_budget={clock.budget:g} s is spent before training ({ctx.stopwatch.elapsed:.1f} s of "
+                    f"set-up, reserve={clock.reserve:g} s kept for after it): {desc} runs one step")
+            print(f"l3d_app: note: {note}", file=sys.stderr)
+            ctx.logger.text("train/budget", note)
+        if eval_price is None and "eval_seconds" in before:          # resumed: the saved run's price
+            eval_price = float(before["eval_seconds"])
+        if eval_fn is not None:         # price the final validation and the test views from the start
+            if eval_price is not None:
+                clock.price_eval(float(eval_price))
+            else:
+                t0 = clock.now()
+                metrics = _evaluate(ctx, eval_fn, start, history)
+                clock.price_eval(clock.now() - t0)
     with stop.installed():
         bar = progress(range(start, iters), desc=desc, total=iters, initial=start)
         for step in bar:
@@ -398,10 +419,15 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
 
 def _counters(before: Dict[str, Any], clock: "_LoopClock", skipped: int, restores: int) -> Dict[str, Any]:
     """The run's step counters, its resumed parts included (kept in the checkpoint's history):
-    steps run, their wall seconds, steps skipped as non-finite, restores of the good state."""
-    return {"steps": int(before.get("steps", 0)) + clock.steps,
-            "seconds": float(before.get("seconds", 0.0)) + clock.train_seconds,
-            "skipped": skipped, "restores": restores}
+    steps run, their wall seconds, steps skipped as non-finite, restores of the good state, and
+    the latest validation's seconds (a resumed run's price of a validation under a budget)."""
+    out = {"steps": int(before.get("steps", 0)) + clock.steps,
+           "seconds": float(before.get("seconds", 0.0)) + clock.train_seconds,
+           "skipped": skipped, "restores": restores}
+    price = clock.last_eval if clock.evals else clock.outside_eval
+    if price > 0:
+        out["eval_seconds"] = price          # a resumed run's first price of a validation
+    return out
 
 
 def _optimizer_step(trainable: Trainable, step: int) -> None:
@@ -431,7 +457,7 @@ class _LoopClock:
                  now: Callable[[], float] = time.perf_counter):
         self.budget, self.reserve, self.reserve_evals, self.now = budget, reserve, reserve_evals, now
         self.train_seconds, self.steps, self.last_step = 0.0, 0, 0.0
-        self.evals, self.last_eval = 0, 0.0
+        self.evals, self.last_eval, self.outside_eval = 0, 0.0, 0.0
         self.budget_stop = False
 
     def add_step(self, seconds: float) -> None:
@@ -446,8 +472,16 @@ class _LoopClock:
         self.evals += 1
         return out
 
+    def price_eval(self, seconds: float) -> None:
+        """A validation's cost timed outside the loop (a task's validation before training): the
+        budget test's price until the loop has timed one of its own. The horizon
+        (:meth:`predicted_steps`) keeps reading the loop's own validations only, so the schedules
+        of a run whose budget holds are not changed by it."""
+        self.outside_eval = max(float(seconds), 0.0)
+
     def eval_cost(self, has_eval: bool) -> float:
-        """Seconds the next validation is expected to take: the latest one's (0 before the first).
+        """Seconds the next validation is expected to take: the latest one's (0 before the first;
+        under a budget :func:`train` prices one before its first step).
 
         The latest, not the mean: an evaluation's cost follows the model (a neural surface
         that is still fuzzy skips no empty space, so volsdf's step-250 validation with a
@@ -462,7 +496,7 @@ class _LoopClock:
         worth of rendering) would pass the budget."""
         if self.budget <= 0:
             return False
-        final_eval = self.eval_cost(has_eval)
+        final_eval = self.eval_cost(has_eval) if (self.evals or not has_eval) else self.outside_eval
         step = self.train_seconds / max(1, self.steps)
         return elapsed + step + final_eval * (1.0 + self.reserve_evals) + self.reserve >= self.budget
 

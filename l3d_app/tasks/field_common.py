@@ -116,7 +116,7 @@ def write_turntables(cfg, ctx, data, gifs: Dict[str, Callable[[Cameras], torch.T
     GIF-encoded in memory (encoding is part of a frame's cost), timed; then only the frames that fit the
     time left are written (:func:`turntable_frames_that_fit`, a multiple of p, so every orbit holds the
     probe's azimuths and reuses its frames; a TensorBoard note ``gifs`` says when fewer). Rendered
-    without autograd. Returns the frames written per gif."""
+    without autograd; none (not even the probe) once the budget is spent. Returns the frames written per gif."""
     import math
     import time
 
@@ -124,6 +124,9 @@ def write_turntables(cfg, ctx, data, gifs: Dict[str, Callable[[Cameras], torch.T
     from l3d_app.runtime.media import gif_bytes
     asked, budget, fps = int(cfg.gif_frames), float(cfg.time_budget), float(cfg.fps)
     frames, probed = max(asked, 0), {}
+    if asked > 0 and budget > 0 and budget - ctx.stopwatch.elapsed <= 0:     # nothing left: no probe either
+        ctx.logger.text("gifs", f"time budget {budget:g} s: spent before the turntables (no gif)")
+        return 0
     if asked > 0 and budget > 0:
         p = math.gcd(asked, 4)
         probe = turntable_orbit(cfg, data, p, ctx.device)

@@ -4,7 +4,7 @@ common knob checks."""
 
 from __future__ import annotations
 
-from typing import Dict, Union
+from typing import Dict, Optional, Union
 
 import torch
 
@@ -15,6 +15,7 @@ from l3d_app.geometry.sampling import sample_points_on_mesh
 from l3d_app.registry import CAMERA_PATHS, DATASETS, RENDERERS
 from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.random import held_out_seed
+from l3d_app.tasks.budget_common import frames_within_budget
 from l3d_app.tasks.common import check_output_knobs, render_frames, require_nonnegative, require_positive
 
 Shape = Union[Mesh, PointCloud, None]
@@ -66,16 +67,21 @@ def _render(cfg, shape: Shape, cams, desc: str) -> torch.Tensor:
     return render_frames(renderer, shape, cams, int(cfg.batch_frames), desc=desc)["image"]
 
 
-def side_by_side_turntable(cfg, ctx, fitted: Shape, target: Shape, name: str) -> torch.Tensor:
-    """Write ``name`` (gif): turntable of ``fitted`` (left) beside ``target`` (right); log it.
+def side_by_side_turntable(cfg, ctx, fitted: Shape, target: Shape, name: str) -> Optional[torch.Tensor]:
+    """Write ``name`` (gif): turntable of ``fitted`` (left) beside ``target`` (right); log it. Under
+    a time budget only the frames that still fit (:func:`frames_within_budget`).
 
-    Returns the (N, H, 2W, 3) frames.
+    Returns the (N, H, 2W, 3) frames, or None when no frame fit the budget (no gif).
     """
     cams = CAMERA_PATHS.build(cfg.camera, device=ctx.device)
-    with torch.no_grad():
-        left = _render(cfg, fitted, cams, "render fit")
-        right = _render(cfg, target, cams, "render target")
-    frames = torch.cat([left, right], dim=2)
+
+    def render(c) -> torch.Tensor:
+        with torch.no_grad():
+            return torch.cat([_render(cfg, fitted, c, "render fit"), _render(cfg, target, c, "render target")], dim=2)
+
+    frames = frames_within_budget(ctx, cams, render, f"{name.rsplit('.', 1)[0]}/budget")
+    if frames is None:
+        return None
     save_gif(ctx.path(name), frames, fps=float(cfg.fps))
     ctx.logger.image_sequence(f"{name.rsplit('.', 1)[0]}/frames", frames)
     return frames

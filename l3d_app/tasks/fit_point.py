@@ -58,7 +58,8 @@ def fit_point(cfg, ctx) -> dict:
 
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step, int(cfg.iters), lambda _i: evaluate_on("val"), int(cfg.eval_every),
-                       int(cfg.checkpoint_every), bool(cfg.resume), desc="fit_point")
+                       int(cfg.checkpoint_every), bool(cfg.resume), desc="fit_point",
+                       reserve_evals=1.0)      # the test figures cost what a validation does
     final = evaluate_on("test")
     log_test(ctx, final, result.step)
     with ctx.stopwatch.stage("render"):

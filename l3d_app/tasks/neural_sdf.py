@@ -40,6 +40,7 @@ from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint, randperm
 from l3d_app.runtime.training import Trainable, train
+from l3d_app.tasks.budget_common import frames_within_budget
 from l3d_app.tasks.common import require_mesh_formats, require_mesh_resolution, require_nonnegative, require_positive
 
 
@@ -95,7 +96,8 @@ def neural_sdf(cfg, ctx) -> dict:
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn if n_val else None,
                        eval_every=int(cfg.eval_every),
-                       checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="neural_sdf")
+                       checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="neural_sdf",
+                       reserve_evals=int(cfg.mesh_resolution) ** 3 / max(1, n_val))   # the mesh: the grid's points
     metrics: Dict[str, float] = {"iters": result.step, "n_params": sum(p.numel() for p in net.parameters()),
                                  "n_points": int(points.shape[0]),
                                  "val_surface_abs": (round(result.metrics["surface_abs"], 6)          # None: no validation
@@ -119,7 +121,12 @@ def neural_sdf(cfg, ctx) -> dict:
         ext = float((hi - lo).norm())
         cams = orbit_cameras(int(cfg.gif_frames), 1.6 * ext, float(cfg.gif_elevation), 45.0, int(cfg.turntable_size),
                              up=getattr(cloud, "up", None), at=centre.tolist(), device=ctx.device)  # +Y unless known
-        o, d = camera_rays(cams, normalize=True)
-        frames = render_rays_chunked(lambda a, b: {"rgb": render_sdf_shaded(sdf, a, b, box)}, o, d, 8192)["rgb"]
-        save_gif(ctx.path("mesh.gif"), frames, fps=float(cfg.fps))
+
+        def render(c):
+            o, d = camera_rays(c, normalize=True)
+            return render_rays_chunked(lambda a, b: {"rgb": render_sdf_shaded(sdf, a, b, box)}, o, d, 8192)["rgb"]
+
+        frames = frames_within_budget(ctx, cams, render, "mesh_gif/budget")     # under a budget: what fits
+        if frames is not None:
+            save_gif(ctx.path("mesh.gif"), frames, fps=float(cfg.fps))
     return metrics

@@ -192,6 +192,13 @@ def check_train_knobs(cfg) -> None:
     check_output_knobs(cfg)
 
 
+def test_evals(cfg, data: PointCloudData) -> float:
+    """The test pass in validations: test clouds x ``test_points`` (0: all) over val clouds x
+    ``eval_points`` (what the loop keeps time for under a budget; the pictures take what is left)."""
+    test_pts = int(cfg.test_points) or data.test.num_points
+    return len(data.test) * min(test_pts, data.test.num_points) / max(1, len(data.val) * min(int(cfg.eval_points), data.val.num_points))
+
+
 def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Dist] = None):
     """Train the configured model for ``kind`` on ``data`` (see module docstring).
 
@@ -265,7 +272,7 @@ def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Di
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, iters, eval_fn=eval_fn, eval_every=spe_eval,
                        checkpoint_every=steps_per_epoch * int(cfg.checkpoint_every_epochs or 0),
-                       resume=bool(cfg.resume), desc=f"pointnet_{kind}")
+                       resume=bool(cfg.resume), desc=f"pointnet_{kind}", reserve_evals=test_evals(cfg, data))
     use_best = bool(cfg.use_best) and dist.is_main and ctx.path(BEST).exists()
     if use_best:
         model.load_state_dict(torch.load(ctx.path(BEST), map_location="cpu", weights_only=False)["state"])
@@ -316,6 +323,10 @@ def write_visuals(cfg, ctx, ev: Evaluation, kind: str, names: List[str],
     ctx.logger.image("test/confusion_matrix", image)
     if int(cfg.num_vis) <= 0 and not cfg.vis_failures:
         return {}
+    left = ctx.seconds_left()
+    if left is not None and left <= 0:         # gifs are previews: under a spent budget, none
+        ctx.logger.text("test/gifs", f"time budget {ctx.time_budget:g} s: spent before the gifs (not written)")
+        return {"gifs_skipped": True}
     colors = palette(k)
     table = Turntable(cfg, ctx.device)
 

@@ -165,7 +165,7 @@ def sds_nerf(cfg, ctx) -> dict:
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
                        checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="sds_nerf",
-                       )
+                       reserve_evals=2.0 * len(cams_360) / len(cams_val))   # the turntable, albedo and textureless
     with ctx.stopwatch.stage("render"):
         colour = render_turntable(cams_360, "albedo")
         plain = render_turntable(cams_360, "textureless")

@@ -178,6 +178,11 @@ def visualise(model: SVRModel, data: SVRData, objects: torch.Tensor, views: torc
     return grid
 
 
+def test_objects(cfg, data: SVRData) -> int:
+    """How many test objects :func:`evaluate_and_report` predicts (``eval_objects``; 0: all)."""
+    return len(data.test[: int(cfg.eval_objects)] if int(cfg.eval_objects) > 0 else data.test)
+
+
 def evaluate_and_report(model: SVRModel, data: SVRData, cfg, ctx, name: str, step: int = 0) -> Dict[str, Any]:
     """The once-only evaluation on the TEST split (view ``eval_view`` of every test object):
     F1 at ``thresholds`` (curve PNG), chamfer, seconds per image, pictures, all logged as

@@ -28,7 +28,7 @@ from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import require_nonnegative, require_positive
 from l3d_app.tasks.svr_common import (evaluate_and_report, geometry_of, load_data, make_batch, plain, predict_points,
-                                      require_eval_view, require_thresholds)
+                                      require_eval_view, require_thresholds, test_objects)
 
 VAL_SEED_OFFSET = 99  # the validation stream: seed + this (any fixed value; chosen once)
 
@@ -71,7 +71,8 @@ def svr_train(cfg, ctx) -> dict:
     use_val = int(cfg.eval_every) > 0 and len(quick) > 0
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step, iters, validate if use_val else None,
-                       int(cfg.eval_every), int(cfg.checkpoint_every), bool(cfg.resume), desc="svr_train")
+                       int(cfg.eval_every), int(cfg.checkpoint_every), bool(cfg.resume), desc="svr_train",
+                       reserve_evals=test_objects(cfg, data) / max(1, len(quick)) if bool(cfg.eval_at_end) else 0.0)
     meta = {"encoder_cfg": encoder_cfg, "decoder_cfg": decoder_cfg, "geometry": geometry,
             "data_cfg": plain(cfg.data), "step": result.step}
     save_svr_model(ctx.path(MODEL_FILE), model, meta)

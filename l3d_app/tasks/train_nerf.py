@@ -99,8 +99,11 @@ def train_nerf(cfg, ctx) -> dict:
 
     before_after = BeforeAfter()
     trainable.extra["before_after"] = before_after      # checkpointed: a resumed run keeps its "before"
+    before_seconds = None        # the loop's first price of a validation under a time budget
     if len(val) and bool(cfg.before_after) and not (bool(cfg.resume) and ctx.path("checkpoint.pt").exists()):
+        t_before = time.perf_counter()
         before_after.before(ctx, lambda: evaluate(val))
+        before_seconds = time.perf_counter() - t_before
 
     def eval_fn(step: int) -> Dict[str, float]:
         sampler.update(step, model, ctx.generator)
@@ -114,7 +117,7 @@ def train_nerf(cfg, ctx) -> dict:
                        resume=bool(cfg.resume), desc="train_nerf", after_step=after_step,
                        time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
                        reserve_evals=evals_after_training(     # the test views (the gif takes what is left)
-                           len(val), len(data.test)))
+                           len(val), len(data.test)), eval_price=before_seconds)
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator)
         test, picture, _ = evaluate(data.test)                                  # the one test evaluation

@@ -135,7 +135,8 @@ def train_prior(cfg, ctx) -> dict:
 
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step, int(cfg.iters), lambda i: evaluate(i, "val"), int(cfg.eval_every),
-                       int(cfg.checkpoint_every), bool(cfg.resume), desc="train_prior", after_step=after)
+                       int(cfg.checkpoint_every), bool(cfg.resume), desc="train_prior", after_step=after,
+                       reserve_evals=1.0)      # the test samples cost what a validation's do
     test = evaluate(result.step, "test")
     log_test(ctx, test, result.step)
     for s, imgs in samples.items():

@@ -276,7 +276,7 @@ def volsdf(cfg, ctx) -> dict:
                        eval_every=int(cfg.eval_every), checkpoint_every=int(cfg.checkpoint_every),
                        resume=bool(cfg.resume), desc="volsdf", after_step=after_step,
                        time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
-                       reserve_evals=evals_after, horizon=horizon)
+                       reserve_evals=evals_after, horizon=horizon, eval_price=before_seconds)
     model.eval()
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator, force=True)
