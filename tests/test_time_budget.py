@@ -28,11 +28,16 @@ def setup(tmp_path, budget=0.0, reserve=0.0):
     return ctx, trainable, step
 
 
-def test_the_run_budget_stops_every_loop(tmp_path):
+def test_the_run_budget_stops_every_loop(tmp_path, capsys):
     # budget 55 s, no reserve: after step 5 the clock reads 60 s >= 55 -> 6 steps, not 100
     ctx, trainable, step = setup(tmp_path, budget=55.0)
     result = train(ctx, trainable, step, iters=100)
     assert result.step == 6 and result.budget_stop
+    # under a tenth of the steps asked for: one line says so, with what the budget kept after training
+    assert "stopped train at step 6 of 100: what follows training is priced at 0.0 s" in capsys.readouterr().err
+    ctx, trainable, step = setup(tmp_path / "b", budget=55.0)
+    train(ctx, trainable, step, iters=50)                  # 6 of 50: more than a tenth, no line
+    assert "stopped" not in capsys.readouterr().err
 
 
 def test_the_reserve_is_kept_for_what_follows(tmp_path):

@@ -394,6 +394,12 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                         continue
                 clock.budget_stop = True
                 ctx.logger.text("train/budget", f"time budget {time_budget:g} s: stopped at step {done}")
+                if done < max(1, iters // 10):    # a budget that leaves training almost nothing: say so
+                    after = clock.after_loop_seconds(eval_fn is not None)
+                    print(f"l3d_app: note: time_budget={time_budget:g} s stopped {desc} at step {done} of {iters}: "
+                          f"what follows training is priced at {after:.1f} s (final validation, "
+                          f"{clock.reserve_evals:g} more validations' worth, reserve={clock.reserve:g} s)",
+                          file=sys.stderr)
                 break
         bar.close()
     done = step + 1 if iters > start else start
@@ -491,14 +497,19 @@ class _LoopClock:
         the mean stopped a 1500-step run at step 750; 3DGS evaluations grow with densification)."""
         return self.last_eval if (has_eval and self.evals) else 0.0
 
+    def after_loop_seconds(self, has_eval: bool) -> float:
+        """What the budget keeps after the loop: the final validation, ``reserve_evals`` more at its
+        price, and ``reserve`` seconds."""
+        final_eval = self.eval_cost(has_eval) if (self.evals or not has_eval) else self.outside_eval
+        return final_eval * (1.0 + self.reserve_evals) + self.reserve
+
     def out_of_time(self, elapsed: float, has_eval: bool) -> bool:
         """True when one more step plus the final validation and the reserve (seconds + evaluations'
         worth of rendering) would pass the budget."""
         if self.budget <= 0:
             return False
-        final_eval = self.eval_cost(has_eval) if (self.evals or not has_eval) else self.outside_eval
         step = self.train_seconds / max(1, self.steps)
-        return elapsed + step + final_eval * (1.0 + self.reserve_evals) + self.reserve >= self.budget
+        return elapsed + step + self.after_loop_seconds(has_eval) >= self.budget
 
     def predicted_steps(self, elapsed: float, done: int, has_eval: bool, eval_every: int) -> float:
         """The step count the budget allows: ``done`` plus the seconds left after the final
