@@ -204,3 +204,28 @@ def test_a_stale_evaluation_price_is_refreshed_before_a_budget_stop(tmp_path):
     assert result.budget_stop and result.step == 100
     assert seen["steps"] == [0, 50, 62, 100]
     assert [s for s, _ in result.history] == [0, 50, 62, 100]
+
+
+class _Reserved(Exception):
+    pass
+
+
+@pytest.mark.parametrize("overrides, expected", [((), 0.0), (("extract_mesh=true",), 30.0),
+                                                 (("extract_mesh=true", "reserve=5"), 35.0)])
+def test_train_nerf_keeps_its_mesh_seconds_only_when_it_extracts_a_mesh(compose, tmp_path, monkeypatch,
+                                                                       overrides, expected):
+    # the 30 s (mesh_reserve) used to be kept whether or not a mesh was written: without one, a
+    # 60 s budget left train_nerf a single step and the gif took the rest
+    from l3d_app.app import run_task
+    from l3d_app.tasks import train_nerf as task
+
+    seen = {}
+
+    def fake_train(*args, **kwargs):
+        seen["reserve"] = kwargs["reserve"]
+        raise _Reserved
+    monkeypatch.setattr(task, "train", fake_train)
+    with pytest.raises(_Reserved):
+        run_task(compose("task=train_nerf", "data.image_size=16", "data.n_train=4", "data.n_val=1", "data.n_test=1",
+                         "before_after=false", "tensorboard=false", *overrides), out_dir=tmp_path)
+    assert seen["reserve"] == expected

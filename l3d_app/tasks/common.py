@@ -58,7 +58,7 @@ def require_mesh_formats(cfg, key: str = "mesh_formats", allowed: Sequence[str] 
                         f"{', '.join(allowed)}, got {value!r}")
 
 
-RUN_KEYS_NONNEGATIVE = ("time_budget", "reserve", "gif_frames", "turntable_size", "eval_views", "checkpoint_every")
+RUN_KEYS_NONNEGATIVE = ("time_budget", "reserve", "mesh_reserve", "gif_frames", "turntable_size", "eval_views", "checkpoint_every")
 """Run and output knobs that many tasks share, where 0 means none / off / the default and a
 negative value means nothing."""
 RUN_KEYS_POSITIVE = ("fps",)

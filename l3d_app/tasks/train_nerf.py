@@ -10,7 +10,8 @@ steps the shared loop evaluates the VALIDATION views (``eval_views`` of them; PS
 a ``pred | truth | error | depth`` picture in TensorBoard); the TEST views are rendered once,
 after training (``psnr``, ``ssim`` in metrics.json; ``val_*`` the last validation).
 ``time_budget`` > 0: wall seconds for the whole task; the loop keeps time for the test views
-(priced at its validations) and ``reserve`` seconds (the mesh); the gif comes last with the
+(priced at its validations), ``mesh_reserve`` seconds with ``extract_mesh=true`` and the top-level
+``reserve`` (0 unless set); the gif comes last with the
 frames that still fit (:func:`~l3d_app.tasks.field_common.write_turntables`). Outputs: ``turntable.gif`` (colour | depth, orbiting the data's
 up axis), ``test_views.png``, ``metrics.json``; ``extract_mesh=true`` adds ``mesh.<fmt>`` of
 ``density = mesh_threshold`` coloured by the field (with ``mesh_cull``: only the faces some
@@ -115,7 +116,8 @@ def train_nerf(cfg, ctx) -> dict:
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn if len(val) else None,
                        eval_every=int(cfg.eval_every), checkpoint_every=int(cfg.checkpoint_every),
                        resume=bool(cfg.resume), desc="train_nerf", after_step=after_step,
-                       time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
+                       time_budget=float(cfg.time_budget),
+                       reserve=float(cfg.reserve) + (float(cfg.mesh_reserve) if bool(cfg.extract_mesh) else 0.0),
                        reserve_evals=evals_after_training(     # the test views (the gif takes what is left)
                            len(val), len(data.test)), eval_price=before_seconds)
     with torch.no_grad():
