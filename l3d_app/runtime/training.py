@@ -311,6 +311,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
     clock = _LoopClock(float(time_budget or 0.0), float(reserve or 0.0), float(reserve_evals or 0.0),
                        now=lambda: ctx.stopwatch.elapsed)
     precision = getattr(ctx, "precision", "fp32")
+    short_note = ""
     if clock.budget > 0 and start < iters:
         if clock.reserve + ctx.stopwatch.elapsed >= clock.budget:
             note = (f"time_budget={clock.budget:g} s is spent before training ({ctx.stopwatch.elapsed:.1f} s of "
@@ -396,12 +397,13 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                 ctx.logger.text("train/budget", f"time budget {time_budget:g} s: stopped at step {done}")
                 if done < max(1, iters // 10):    # a budget that leaves training almost nothing: say so
                     after = clock.after_loop_seconds(eval_fn is not None)
-                    print(f"l3d_app: note: time_budget={time_budget:g} s stopped {desc} at step {done} of {iters}: "
-                          f"what follows training is priced at {after:.1f} s (final validation, "
-                          f"{clock.reserve_evals:g} more validations' worth, reserve={clock.reserve:g} s)",
-                          file=sys.stderr)
+                    short_note = (f"time_budget={time_budget:g} s stopped {desc} at step {done} of {iters}: what "
+                                  f"follows training is priced at {after:.1f} s (final validation, "
+                                  f"{clock.reserve_evals:g} more validations' worth, reserve={clock.reserve:g} s)")
                 break
         bar.close()
+    if short_note:                          # after the bar, on a line of its own
+        print(f"l3d_app: note: {short_note}", file=sys.stderr)
     done = step + 1 if iters > start else start
     interrupted = stop.signal is not None and done < iters
     if eval_fn is not None and (not history["eval"] or history["eval"][-1][0] != done):
