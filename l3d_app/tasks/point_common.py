@@ -192,11 +192,12 @@ def check_train_knobs(cfg) -> None:
     check_output_knobs(cfg)
 
 
-def test_evals(cfg, data: PointCloudData) -> float:
+def evals_in_the_test_pass(cfg, data: PointCloudData) -> float:
     """The test pass in validations: test clouds x ``test_points`` (0: all) over val clouds x
     ``eval_points`` (what the loop keeps time for under a budget; the pictures take what is left)."""
-    test_pts = int(cfg.test_points) or data.test.num_points
-    return len(data.test) * min(test_pts, data.test.num_points) / max(1, len(data.val) * min(int(cfg.eval_points), data.val.num_points))
+    test_pts = min(int(cfg.test_points) or data.test.num_points, data.test.num_points)
+    val_pts = min(int(cfg.eval_points), data.val.num_points)
+    return len(data.test) * test_pts / max(1, len(data.val) * val_pts)
 
 
 def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Dist] = None):
@@ -272,7 +273,8 @@ def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Di
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, iters, eval_fn=eval_fn, eval_every=spe_eval,
                        checkpoint_every=steps_per_epoch * int(cfg.checkpoint_every_epochs or 0),
-                       resume=bool(cfg.resume), desc=f"pointnet_{kind}", reserve_evals=test_evals(cfg, data))
+                       resume=bool(cfg.resume), desc=f"pointnet_{kind}",
+                       reserve_evals=evals_in_the_test_pass(cfg, data))
     use_best = bool(cfg.use_best) and dist.is_main and ctx.path(BEST).exists()
     if use_best:
         model.load_state_dict(torch.load(ctx.path(BEST), map_location="cpu", weights_only=False)["state"])
