@@ -116,7 +116,8 @@ def write_turntables(cfg, ctx, data, gifs: Dict[str, Callable[[Cameras], torch.T
     GIF-encoded in memory (encoding is part of a frame's cost), timed; then only the frames that fit the
     time left are written (:func:`turntable_frames_that_fit`, a multiple of p, so every orbit holds the
     probe's azimuths and reuses its frames; a TensorBoard note ``gifs`` says when fewer). Rendered
-    without autograd; none (not even the probe) once the budget is spent. Returns the frames written per gif."""
+    without autograd; none (not even the probe) once the budget is spent, and none after probe frame 0
+    when fewer than 8 frames at its cost fit. Returns the frames written per gif."""
     import math
     import time
 
@@ -131,7 +132,15 @@ def write_turntables(cfg, ctx, data, gifs: Dict[str, Callable[[Cameras], torch.T
         p = math.gcd(asked, 4)
         probe = turntable_orbit(cfg, data, p, ctx.device)
         t0 = time.perf_counter()
-        probed = {name: frames_fn(probe) for name, frames_fn in gifs.items()}
+        probed = {name: frames_fn(probe[0]) for name, frames_fn in gifs.items()}       # probe frame 0 first
+        first, least = time.perf_counter() - t0, min(8, asked)
+        if budget - ctx.stopwatch.elapsed < (least - 1) * first:       # the least gif does not fit: stop here
+            ctx.logger.text("gifs", f"time budget {budget:g} s: {max(budget - ctx.stopwatch.elapsed, 0.0):.1f} s "
+                                    f"left at {first:.2f} s per frame (probe frame 0): fewer than {least} "
+                                    "turntable frames fit (no gif)")
+            return 0
+        if p > 1:
+            probed = {name: torch.cat([shots, gifs[name](probe[1:]).to(shots)], 0) for name, shots in probed.items()}
         t1 = time.perf_counter()
         for shots in probed.values():
             gif_bytes(shots.clamp(0, 1), fps)
