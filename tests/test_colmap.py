@@ -121,9 +121,10 @@ def test_splits_by_sorted_name_normalisation_and_downscale(tmp_path):
     assert d.test.tolist() == [0, 8, 16]
     assert d.val.tolist() == [4, 9, 13] and len(d.train) == 11
     assert not (set(d.train.tolist()) & set(d.val.tolist()) | set(d.train.tolist()) & set(d.test.tolist()))
-    # normalised: cameras centred, median distance 3; the recorded transform maps back exactly
+    # normalised: the training cameras centred, their median distance 3; the map back is exact
     c = d.cameras.centers().double()
-    assert c.mean(0).abs().max() < 1e-5 and float(c.norm(dim=-1).median()) == pytest.approx(3.0, abs=1e-5)
+    ct = c[d.train]
+    assert ct.mean(0).abs().max() < 1e-5 and float(ct.norm(dim=-1).median()) == pytest.approx(3.0, abs=1e-5)
     M = d.source_from_world
     back = d.points.double() @ M[:3, :3].T + M[:3, 3]
     torch.testing.assert_close(back, torch.from_numpy(pts), atol=1e-5, rtol=0)
@@ -143,6 +144,36 @@ def test_splits_by_sorted_name_normalisation_and_downscale(tmp_path):
     assert half.image_size == (H // 2, W // 2)
     torch.testing.assert_close(half.cameras.fx, d.cameras.fx / 2)
     torch.testing.assert_close(half.cameras.cx, d.cameras.cx / 2)
+
+
+def test_the_scored_poses_take_no_part_in_the_set_up(tmp_path):
+    """Moving the test and val cameras far off changes nothing of the training cameras' normalised
+    poses, the points, the box or the up vector; the reference is the float64 normalisation
+    written here from the training cameras alone."""
+    n = 17
+    R, t, K, pts, cols = scene(n=n)
+    names = [f"view_{i:02d}.png" for i in range(n)]          # sorted = file order
+    write_scene(tmp_path / "a", R, t, K, (W, H), pts, cols, names=names)
+    a = colmap(str(tmp_path / "a"), test_every=8, val_every=4)
+    scored = torch.cat([a.val, a.test]).numpy()
+    t2 = t.copy()
+    t2[scored] += np.array([4.0, -7.0, 30.0])                 # scored cameras moved 31 units away
+    write_scene(tmp_path / "b", R, t2, K, (W, H), pts, cols, names=names)
+    b = colmap(str(tmp_path / "b"), test_every=8, val_every=4)
+    assert torch.equal(a.train, b.train) and torch.equal(a.test, b.test)
+    for f in ("R", "t"):
+        torch.testing.assert_close(getattr(a.cameras, f)[a.train], getattr(b.cameras, f)[b.train], atol=1e-5, rtol=0)
+    torch.testing.assert_close(a.points, b.points, atol=1e-5, rtol=0)
+    torch.testing.assert_close(a.scene_box, b.scene_box, atol=1e-5, rtol=0)
+    torch.testing.assert_close(a.up, b.up, atol=1e-6, rtol=0)
+    # independent reference: centre and scale from the training cameras' centres in float64
+    C = -np.einsum("nji,nj->ni", R, t)[a.train.numpy()]
+    c0 = C.mean(0)
+    s = 3.0 / np.median(np.linalg.norm(C - c0, axis=1))
+    np.testing.assert_allclose(b.points.double().numpy(), s * (pts - c0), atol=1e-5)
+    # the moved test cameras are still where the same similarity puts them
+    C_test = -np.einsum("nji,nj->ni", R, t2)[a.test.numpy()]
+    np.testing.assert_allclose(b.cameras.centers().double()[b.test].numpy(), s * (C_test - c0), atol=1e-4)
 
 
 def test_pre_downscaled_image_folder(tmp_path):

@@ -7,8 +7,10 @@ Conventions shared by ``data=colmap`` and ``data=nerfstudio``:
   the Mip-NeRF 360 / gsplat convention); val = every ``val_every``-th of the rest
   (:func:`~l3d_app.data.nerf_views.carve_val`); train = the remainder.
 * Normalisation (``normalize=true``): world points ``x' = s (x - c)`` with ``c`` the mean
-  camera centre and ``s = camera_radius / median |C_i - c|``; the inverse is kept as the
-  dataset's ``source_from_world`` (4x4) so exports map back to the capture's coordinates.
+  centre of the training cameras and ``s = camera_radius / median |C_i - c|`` over them; the
+  inverse is kept as the dataset's ``source_from_world`` (4x4) so exports map back to the
+  capture's coordinates. The val and test poses take no part (nor in the box's focus point, nor
+  in the unnormalised radius): the set-up reads nothing of the views a run is scored on.
 * Scene box: the ``box_percentile`` .. ``100 - box_percentile`` per-axis range of the sparse
   points grown by ``box_margin`` of its extent per side; without points, a cube of half-size
   ``camera_radius / 2`` about the cameras' focus point (:func:`focus_point`: where their optical
@@ -48,17 +50,21 @@ def split_by_name(names: Sequence[str], test_every: int, val_every: int
     return train, val, idx[is_test]
 
 
-def normalize_scene(R: torch.Tensor, t: torch.Tensor, points: Optional[torch.Tensor], camera_radius: float
+def normalize_scene(R: torch.Tensor, t: torch.Tensor, points: Optional[torch.Tensor], camera_radius: float,
+                    fit_on: Optional[torch.Tensor] = None
                     ) -> Tuple[torch.Tensor, Optional[torch.Tensor], torch.Tensor]:
-    """Centre the cameras at the origin and scale their median distance to ``camera_radius``.
+    """Centre the ``fit_on`` cameras at the origin and scale their median distance to ``camera_radius``.
 
     Args:
         R: (N, 3, 3) world->camera (unchanged by a similarity); t: (N, 3); points: (P, 3) or None.
+        fit_on: indices of the cameras that set the centre and scale (the training split); None: all.
     Returns:
-        new t (N, 3), new points, and the (4, 4) float64 ``source_from_world``.
+        new t (N, 3) of every camera, new points, and the (4, 4) float64 ``source_from_world``.
     """
     R64, t64 = R.double(), t.double()
     centres = -(R64.transpose(1, 2) @ t64[..., None])[..., 0]
+    if fit_on is not None and len(fit_on):
+        centres = centres[fit_on]
     c = centres.mean(0)
     med = float((centres - c).norm(dim=-1).median()) if len(centres) > 1 else 0.0
     s = float(camera_radius) / med if med > 1e-12 else 1.0
@@ -68,6 +74,12 @@ def normalize_scene(R: torch.Tensor, t: torch.Tensor, points: Optional[torch.Ten
     M[:3, :3] /= s
     M[:3, 3] = c
     return t_new, pts, M
+
+
+def camera_spread(cameras: Cameras) -> float:
+    """Median distance (scene units) of the cameras' centres from their mean."""
+    c = cameras.centers().double()
+    return float((c - c.mean(0)).norm(dim=-1).median())
 
 
 def focus_point(cameras: Cameras, min_spread: float = 0.05, min_in_front: float = 0.9) -> Optional[torch.Tensor]:

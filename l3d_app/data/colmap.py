@@ -16,8 +16,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from l3d_app.data.captures import (border_background, image_files, load_images, normalize_scene,
-                                   scene_box, split_by_name)
+from l3d_app.data.captures import (border_background, camera_spread, image_files, load_images,
+                                   normalize_scene, scene_box, split_by_name)
 from l3d_app.data.colmap_model import find_model_files, qvec_to_rotmat, read_model
 from l3d_app.data.nerf_views import MultiViewData, background_rgb
 from l3d_app.geometry.pose_checks import check_rigid_poses
@@ -72,17 +72,16 @@ def colmap(root: str = None, images: str = "images", sparse: str = "sparse/0", d
                           cam_ids.tolist(), str(folder / images))
     pts = torch.from_numpy(model.points.copy()) if len(model.points) else None
     cols = torch.from_numpy(model.colors.astype(np.float32) / 255.0) if pts is not None else None
+    train, val, test = split_by_name(names, int(test_every), int(val_every))
     M = torch.eye(4, dtype=torch.float64)
     if normalize:
-        t, pts, M = normalize_scene(R, t, pts, float(camera_radius))
+        t, pts, M = normalize_scene(R, t, pts, float(camera_radius), fit_on=train)
     H, W = imgs.shape[1:3]
     Kt = torch.from_numpy(K)
     cams = Cameras(R.float(), t.float(), Kt[:, 0].float(), Kt[:, 1].float(), Kt[:, 2].float(), Kt[:, 3].float(), W, H)
-    train, val, test = split_by_name(names, int(test_every), int(val_every))
     bg, known = border_background(imgs[train], background)
-    box = scene_box(pts, float(camera_radius) if normalize else float(
-        (cams.centers() - cams.centers().mean(0)).norm(dim=-1).median()), float(box_percentile), float(box_margin),
-        cameras=cams)
+    box = scene_box(pts, float(camera_radius) if normalize else camera_spread(cams[train]),
+                    float(box_percentile), float(box_margin), cameras=cams[train])
     data = MultiViewData(imgs, cams, train, val, test, bg, box, name=f"colmap:{folder.name}",
                          points=None if pts is None else pts.float(), point_colors=cols,
                          source_from_world=M, background_known=known)

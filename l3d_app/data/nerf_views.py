@@ -56,7 +56,7 @@ class MultiViewData:
         point_colors: (P, 3) float32 in [0, 1] matching ``points``, or None.
         mesh: the ground-truth :class:`Mesh` when the source knows it, else None.
         up: (3,) unit world up vector of the scene (orbits and turntables turn about it);
-            ``None`` at construction means "the cameras' mean up vector".
+            ``None`` at construction means "the training cameras' mean up vector".
         source_from_world: (4, 4) float64 similarity mapping this dataset's world
             coordinates back to the source file's (identity unless the loader normalised
             the scene): ``x_src = M[:3, :3] @ x + M[:3, 3]``.
@@ -84,8 +84,8 @@ class MultiViewData:
     masks: Optional[torch.Tensor] = None
 
     def __post_init__(self):
-        if self.up is None:
-            self.up = cameras_up(self.cameras)
+        if self.up is None:        # from the training cameras: nothing of the scored views
+            self.up = cameras_up(self.cameras[self.train] if len(self.train) else self.cameras)
         self.up = torch.nn.functional.normalize(torch.as_tensor(self.up, dtype=torch.float32).reshape(3), dim=0)
         if self.source_from_world is None:
             self.source_from_world = torch.eye(4, dtype=torch.float64)

@@ -27,8 +27,8 @@ from typing import Optional, Tuple
 import numpy as np
 import torch
 
-from l3d_app.data.captures import (border_background, image_files, load_images, normalize_scene,
-                                   scene_box, split_by_name)
+from l3d_app.data.captures import (border_background, camera_spread, image_files, load_images,
+                                   normalize_scene, scene_box, split_by_name)
 from l3d_app.data.nerf_views import MultiViewData, background_rgb, disjoint_splits
 from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
 from l3d_app.errors import UserError
@@ -144,13 +144,6 @@ def nerfstudio(root: str = None, transforms: str = "transforms.json", downscale:
         if a.shape not in ((3, 4), (4, 4)) or not bool(torch.isfinite(a).all()):
             raise UserError(f"{path}: applied_transform must be a finite 3x4 matrix")
         applied[:3] = a[:3]
-    M = torch.eye(4, dtype=torch.float64)
-    R, t = cams.R, cams.t
-    if normalize:
-        t, pts, M = normalize_scene(R, t, pts, float(camera_radius))
-    source_from_world = torch.linalg.inv(applied) @ M      # this world -> nerfstudio world -> source
-    cams = Cameras(R.float(), t.float(), cams.fx.float(), cams.fy.float(), cams.cx.float(), cams.cy.float(), W, H)
-
     split_idx = {}
     if any(f"{s}_filenames" in meta for s in ("train", "val", "test")):
         where = {_norm(n): i for i, n in enumerate(names)}
@@ -166,9 +159,16 @@ def nerfstudio(root: str = None, transforms: str = "transforms.json", downscale:
         train, val, test = disjoint_splits(train, val, test, int(val_every), str(path))
     else:
         train, val, test = split_by_name(names, int(test_every), int(val_every))
+    M = torch.eye(4, dtype=torch.float64)
+    R, t = cams.R, cams.t
+    if normalize:
+        t, pts, M = normalize_scene(R, t, pts, float(camera_radius), fit_on=train)
+    source_from_world = torch.linalg.inv(applied) @ M      # this world -> nerfstudio world -> source
+    cams = Cameras(R.float(), t.float(), cams.fx.float(), cams.fy.float(), cams.cx.float(), cams.cy.float(), W, H)
+
     bg, known = border_background(imgs[train], background)
-    radius = float(camera_radius) if normalize else float((cams.centers() - cams.centers().mean(0)).norm(dim=-1).median())
-    box = scene_box(pts, radius, float(box_percentile), float(box_margin), cameras=cams)
+    radius = float(camera_radius) if normalize else camera_spread(cams[train])
+    box = scene_box(pts, radius, float(box_percentile), float(box_margin), cameras=cams[train])
     data = MultiViewData(imgs, cams, train, val, test, bg, box, name=f"nerfstudio:{folder.name}",
                          points=None if pts is None else pts.float(), point_colors=cols,
                          source_from_world=source_from_world, background_known=known)
