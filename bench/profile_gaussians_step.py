@@ -9,8 +9,8 @@ Loads the Gaussians of a ``gs_train`` checkpoint (``--state``) and a NeRF-synthe
 (``--root``), then times, on its first ``--views`` training views, ``--repeats`` times each,
 what one training step of ``gs_train`` does: the rasteriser's stages (projection, SH colour,
 tile binning, the (pixel, splat) pair test, compositing), the loss (L1 + 0.2 (1 - SSIM)), the
-backward pass and one Adam step of all parameters (``foreach`` as gs_train builds it, and the
-single-tensor loop for comparison). Wall milliseconds per step, the mean over all timed
+backward pass and one Adam step of all parameters (``fused`` as gs_train builds it, and the
+``foreach`` and single-tensor forms for comparison). Wall milliseconds per step, the mean over all timed
 steps after two warm-up steps. ``--repo`` times another checkout's code with this script
 (e.g. an older commit, for a before/after table): the stage functions are looked up by name
 in its ``l3d_app.render.gaussians``.
@@ -66,8 +66,8 @@ def main(argv=None) -> None:
     model = init_from_points(torch.zeros(state["means"].shape[0], 3), None, opacity=0.1)
     model.load_state_dict(state)
     params = list(model.parameters())
-    adams = {kind: torch.optim.Adam([{"params": [p], "lr": 0.0} for p in params], foreach=kind == "foreach")
-             for kind in ("foreach", "single_tensor")}
+    forms = {"fused": {"fused": True}, "foreach": {"foreach": True}, "single_tensor": {"foreach": False}}
+    adams = {kind: torch.optim.Adam([{"params": [p], "lr": 0.0} for p in params], **kw) for kind, kw in forms.items()}
     views = [int(i) for i in data.train[:args.views]]
 
     def step(i: int) -> None:
@@ -98,7 +98,7 @@ def main(argv=None) -> None:
             step(i)
     n = args.repeats * len(views)
     ms = {k: round(1000.0 * v / n, 1) for k, v in spent.items()}
-    ms["step_total_foreach_adam"] = round(ms["rasterize_total"] + ms["loss"] + ms["backward"] + ms["adam_foreach"], 1)
+    ms["step_total_fused_adam"] = round(ms["rasterize_total"] + ms["loss"] + ms["backward"] + ms["adam_fused"], 1)
     print(json.dumps({"repo": args.repo, "gaussians": model.num, "steps_timed": n, "threads": args.threads,
                       "ms_per_step": ms}, indent=1))
 

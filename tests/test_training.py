@@ -10,7 +10,7 @@ from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.lr_schedules import warmup_cosine
 from l3d_app.runtime.seed import seed_everything
-from l3d_app.runtime.training import CHECKPOINT, Trainable, train
+from l3d_app.runtime.training import CHECKPOINT, Trainable, tensors_finite, train
 
 
 def make_ctx(out_dir, seed=0):
@@ -194,3 +194,25 @@ def test_an_update_that_overflows_inside_the_optimiser_is_named(tmp_path):
     model, trainable = make_problem(lr=1e38)
     with pytest.raises(UserError, match="optimiser's update overflowed at step 0"):
         train(ctx, trainable, regression_step(ctx, model), iters=3)
+
+
+def test_the_finite_check_agrees_with_the_elementwise_test_on_hard_cases():
+    """tensors_finite (a sum first) against the naive per-element reference: NaN, +-inf, both
+    infinities in one tensor (their sum is NaN), huge finite values whose sum overflows (finite
+    all the same), subnormals, empty tensors, None, float64 / bfloat16."""
+    big = torch.full((4,), 3e38)                      # sum overflows to inf; every element finite
+    cases = [
+        [torch.zeros(3), torch.ones(2, 2)],
+        [torch.tensor([1.0, float("nan")])],
+        [torch.tensor([float("inf"), 1.0])],
+        [torch.tensor([-float("inf")]), torch.zeros(2)],
+        [torch.tensor([float("inf"), -float("inf")])],
+        [big], [big, torch.tensor([float("nan")])], [-big, big],
+        [torch.tensor([1e-45, -1e-45])], [torch.zeros(0)], [None, torch.ones(1)], [None], [],
+        [torch.tensor([1e308, 1e308], dtype=torch.float64)],
+        [torch.tensor([3e38, 3e38], dtype=torch.bfloat16)], [torch.tensor([float("nan")], dtype=torch.bfloat16)],
+    ]
+    for ts in cases:
+        naive = all(bool(torch.isfinite(t).all()) for t in ts if t is not None)
+        assert tensors_finite(ts) is naive, ts
+    assert tensors_finite([big]) is True and tensors_finite([torch.tensor([float("inf"), -float("inf")])]) is False

@@ -55,17 +55,44 @@ def eval_sh(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tens
         coeffs: (..., K, C) with K >= (degree + 1)^2 (extra coefficients are ignored).
         dirs: (..., 3) unit viewing directions (camera -> point, world frame).
     Returns:
-        (..., C) raw SH value (add 0.5 and clamp for a colour, see :func:`sh_to_color`).
-        One batched matrix product of the basis with the coefficients, so the backward to
-        the coefficients is a single product too (no per-coefficient slices, no (..., K, C)
-        temporaries).
+        (..., C) raw SH value (add 0.5 and clamp for a colour, see :func:`sh_to_color`):
+        ``sum_k basis_k coeffs_k`` by :class:`BasisDot`.
     """
     k = num_sh_coeffs(degree)
     if coeffs.shape[-2] < k:
         raise ValueError(f"degree {degree} needs {k} SH coefficients, got {coeffs.shape[-2]}")
     basis = sh_basis(degree, dirs)
-    # a batched (1, K) @ (K, C) product: forward and backward are each one bmm
-    return torch.matmul(basis.unsqueeze(-2), coeffs[..., :k, :]).squeeze(-2)
+    return BasisDot.apply(basis, coeffs[..., :k, :])
+
+
+class BasisDot(torch.autograd.Function):
+    """``out[..., c] = sum_k basis[..., k] coeffs[..., k, c]`` with a hand-written backward.
+
+    forward(basis (..., K), coeffs (..., K, C)) -> (..., C): one batched (1, K) @ (K, C) product.
+    Its autograd backward would be two more batched products of tiny matrices, slow on CPU
+    (14 of 20 ms at 63 609 Gaussians, K = 16, C = 3, 2 cores); here the coefficients' gradient is
+    one outer product ``basis[..., k] g[..., c]`` and the basis' gradient C fused multiply-adds
+    ``sum_c coeffs[..., k, c] g[..., c]`` (13 ms in all).
+    """
+
+    @staticmethod
+    def forward(ctx, basis, coeffs):
+        ctx.save_for_backward(basis, coeffs)
+        return torch.matmul(basis.unsqueeze(-2), coeffs).squeeze(-2)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g):
+        basis, coeffs = ctx.saved_tensors
+        g_basis = g_coeffs = None
+        if ctx.needs_input_grad[0]:
+            g_basis = coeffs[..., 0] * g[..., None, 0]
+            for c in range(1, coeffs.shape[-1]):
+                g_basis.addcmul_(coeffs[..., c], g[..., None, c])     # the first product has the full shape
+            g_basis = g_basis.sum_to_size(basis.shape)
+        if ctx.needs_input_grad[1]:
+            g_coeffs = (basis.unsqueeze(-1) * g.unsqueeze(-2)).sum_to_size(coeffs.shape)
+        return g_basis, g_coeffs        # summed over the dimensions an input was broadcast along
 
 
 def sh_to_color(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:

