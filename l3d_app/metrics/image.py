@@ -31,15 +31,16 @@ def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: floa
     c = x.shape[1]
     window = min(window, x.shape[-1], x.shape[-2])
     g = _gaussian_window(window, sigma, x.dtype, x.device)
-    kernel = (g[:, None] * g[None, :]).expand(c, 1, window, window).contiguous()
-
-    def blur(img):
-        return F.conv2d(img, kernel, groups=c)
-
-    mu_x, mu_y = blur(x), blur(y)
-    var_x = blur(x * x) - mu_x ** 2
-    var_y = blur(y * y) - mu_y ** 2
-    cov = blur(x * y) - mu_x * mu_y
+    # the five local means in one grouped convolution, the Gaussian window applied as its two
+    # 1D factors (rows, then columns: 2 x 11 taps per pixel instead of 121; the same window)
+    stack = torch.cat([x, y, x * x, y * y, x * y], 1)                          # (B, 5C, H, W)
+    n = stack.shape[1]
+    rows = F.conv2d(stack, g.view(1, 1, 1, window).expand(n, 1, 1, window), groups=n)
+    mu_x, mu_y, e_xx, e_yy, e_xy = F.conv2d(rows, g.view(1, 1, window, 1).expand(n, 1, window, 1),
+                                            groups=n).split(c, 1)
+    var_x = e_xx - mu_x ** 2
+    var_y = e_yy - mu_y ** 2
+    cov = e_xy - mu_x * mu_y
     c1, c2 = (k1 * max_val) ** 2, (k2 * max_val) ** 2
     num = (2 * mu_x * mu_y + c1) * (2 * cov + c2)
     den = (mu_x ** 2 + mu_y ** 2 + c1) * (var_x + var_y + c2)

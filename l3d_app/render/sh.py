@@ -32,7 +32,7 @@ def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
     """(..., K) real SH basis values up to ``degree`` (0-3) at unit directions (..., 3),
     ``K = (degree + 1)^2``, in the 3DGS order and sign convention."""
     k = num_sh_coeffs(degree)
-    x, y, z = dirs[..., 0], dirs[..., 1], dirs[..., 2]
+    x, y, z = dirs.movedim(-1, 0).contiguous()      # contiguous rows: the polynomial runs vectorised
     terms = [torch.full_like(x, SH_C0)]
     if degree >= 1:
         terms += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
