@@ -129,6 +129,23 @@ def test_default_opacity_reset_skipped_near_the_end(steps_left, expect_reset):
     torch.testing.assert_close(torch.sigmoid(m.opacity_logits), torch.full((20,), expected))
 
 
+@pytest.mark.parametrize("steps_left,expect_growth", [(99, False), (100, True), (None, True)])
+def test_default_densification_skipped_near_the_end(steps_left, expect_growth):
+    """With densify_min_steps_left=100 a densification due with 99 steps left is skipped (the
+    count stays 20), one with 100 left or with nobody saying is made (every splat's gradient is
+    over the threshold and small: each is cloned, 40)."""
+    m, opt = _model_and_adam()
+    s = DefaultStrategy(start=2, until=1000, every=2, grad_threshold=0.1, max_gaussians=1000,
+                        densify_min_steps_left=100)
+    s.initialize(m, opt, 1000.0)
+    for step in range(2):
+        info = _info(torch.full((20,), 0.3), m.num)
+        if steps_left is not None:
+            info["steps_left"] = steps_left
+        s.step_post_backward(m, opt, step, info)
+    assert m.num == (40 if expect_growth else 20), m.num
+
+
 def _relocation_reference(o: float, k: int):
     """The paper's eq. (9): o' = 1 - (1-o)^(1/k); s' = o / sum_{i=1..k} sum_{j<i} C(i-1,j) (-1)^j o'^(j+1)/sqrt(j+1)."""
     on = 1 - (1 - o) ** (1 / k)

@@ -46,6 +46,9 @@ class DefaultStrategy(Strategy):
         reset_min_steps_left: a reset is skipped when fewer steps than this are left in the run
             (``info["steps_left"]``, on the nominal schedule; absent: never skipped): a reset costs
             15-20 dB that take about 100 steps to recover.
+        densify_min_steps_left: a densification is skipped when fewer steps than this are left
+            (the same ``steps_left``; 0: never skipped): its new splats (clones, split halves) would
+            be scored nearly untrained when a time budget stops the run just after it.
         max_gaussians: cap on the count.
 
     The steps above are those of the task's nominal schedule (``info["schedule"]``,
@@ -59,7 +62,7 @@ class DefaultStrategy(Strategy):
     def __init__(self, start: int = 100, until: int = 2000, every: int = 100, grad_threshold: float = 2e-4,
                  percent_dense: float = 0.01, min_opacity: float = 0.005, max_screen_size: float = 0.0,
                  max_world_scale: float = 0.1, opacity_reset_every: int = 0, reset_value: float = 0.01,
-                 max_gaussians: int = 200_000, reset_min_steps_left: int = 0):
+                 max_gaussians: int = 200_000, reset_min_steps_left: int = 0, densify_min_steps_left: int = 0):
         super().__init__()
         if int(every) <= 0:
             raise UserError(f"strategy.every must be > 0, got {every}")
@@ -72,6 +75,7 @@ class DefaultStrategy(Strategy):
         self.opacity_reset_every = int(opacity_reset_every)
         self.reset_value = float(reset_value)
         self.reset_min_steps_left = int(reset_min_steps_left)
+        self.densify_min_steps_left = int(densify_min_steps_left)
         self.max_gaussians = int(max_gaussians)
         self.grad_accum = self.count = self.max_radii = None
 
@@ -100,7 +104,9 @@ class DefaultStrategy(Strategy):
         if previous >= until or grad is None:
             return logs
         self.accumulate(grad, info["radii"].detach(), int(info["width"]), int(info["height"]))
-        if scheduled_event(previous, done, self.every, first=self.start, last=until):
+        if (scheduled_event(previous, done, self.every, first=self.start, last=until)
+                and (self.densify_min_steps_left <= 0
+                     or info.get("steps_left", self.densify_min_steps_left) >= self.densify_min_steps_left)):
             r = self.densify_and_prune(model, optimizer, generator, prune_screen=done > self.opacity_reset_every)
             logs = {k: float(r[k]) for k in ("n", "cloned", "split", "pruned")}
         if (self.opacity_reset_every > 0 and scheduled_event(previous, done, self.opacity_reset_every, last=until)
