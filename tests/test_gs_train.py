@@ -54,7 +54,7 @@ TINY = ("task=gs_train", "data.image_size=32", "data.n_train=20", "data.n_val=2"
 def test_gs_train_tiny_run_reaches_a_quality_floor_val_during_test_once(compose, tmp_path):
     torch.set_num_threads(1)
     cfg = compose(*TINY, "iters=120", "eval_every=40", "strategy.start=40", "strategy.every=40",
-                  f"data.cache_dir={tmp_path / 'cache'}")
+                  "strategy.densify_min_steps_left=40", f"data.cache_dir={tmp_path / 'cache'}")   # densifies at 40, 80
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     hist = m["history"]
@@ -220,7 +220,8 @@ def test_gs_train_resume_is_bitwise_identical(compose, tmp_path, monkeypatch):
     torch.set_num_threads(1)
     args = ("task=gs_train", "iters=36", "eval_every=18", "data.image_size=24", "data.n_train=8", "data.n_test=1",
             "n_init=600", "strategy.start=6", "strategy.every=6", "strategy.opacity_reset_every=24",
-            "strategy.reset_min_steps_left=0", "sh_every=12", "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
+            "strategy.reset_min_steps_left=0", "strategy.densify_min_steps_left=0", "sh_every=12", "tensorboard=false",
+            f"data.cache_dir={tmp_path / 'cache'}")
     run_task(compose(*args), out_dir=tmp_path / "full")
     monkeypatch.setenv("L3D_STOP_AT_STEP", "15")          # mid-way between two densifications
     with pytest.raises(RunInterrupted):
