@@ -223,8 +223,9 @@ def tensors_finite(tensors: List[Optional[torch.Tensor]]) -> bool:
     """True when every element of every tensor (None skipped) is finite.
 
     One sum per tensor first: a NaN or an infinity makes a sum non-finite, so a finite sum
-    proves its tensor finite in one pass (``isfinite(x).all()`` makes five: 11 of a 276 ms
-    gs_train step at 63 609 Gaussians went to the guard's two checks). Only when a sum is not
+    proves its tensor finite in one pass (``isfinite(x).all()`` makes five: in a profile of gs_train
+    at 63 609 Gaussians those passes over the SH coefficients alone took about 11 ms per step, for
+    the guard's two checks). Only when a sum is not
     finite (which an overflow of huge finite values also gives) does the exact test decide.
     """
     ts = [t for t in tensors if t is not None]
