@@ -57,6 +57,17 @@ def test_chunked_grid_matches_full_grid():
     lo, hi = (-1.0, -0.5, -1.0), (1.0, 0.5, 1.0)
     full = sdf(grid_points(lo, hi, 17))
     assert torch.equal(evaluate_grid(sdf, lo, hi, 17, chunk_size=1), full)
+    # calls that split a 17 x 17 slab unevenly (100), span whole slabs and a part (500), and the default
+    seen = []
+
+    def counted(p):
+        seen.append(tuple(p.shape))
+        return sdf(p)
+
+    for chunk in (100, 500, None):
+        seen.clear()
+        assert torch.equal(evaluate_grid(counted, lo, hi, 17, chunk_size=chunk), full)
+        assert max(n for n, _ in seen) <= (chunk or 17 ** 3) and sum(n for n, _ in seen) == 17 ** 3
 
 
 def test_empty_level_set_is_user_error():

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Callable, Sequence, Tuple
+from typing import Callable, Optional, Sequence, Tuple
 
 import torch
 
@@ -38,7 +38,7 @@ class SDFGridCache(torch.nn.Module):
         return float(((self.hi - self.lo) / (self.resolution - 1)).max())
 
     @torch.no_grad()
-    def update(self, sdf_fn: SdfFn, chunk_size: int = 1 << 16) -> None:
+    def update(self, sdf_fn: SdfFn, chunk_size: Optional[int] = None) -> None:
         from l3d_app.geometry.marching_cubes import evaluate_grid
 
         self.values.copy_(evaluate_grid(sdf_fn, self.lo.tolist(), self.hi.tolist(), self.resolution,
