@@ -57,20 +57,68 @@ def test_nan_steps_are_skipped_not_applied(tmp_path):
 
 
 def test_repeated_failures_restore_last_good_state_and_checkpoints_stay_finite(tmp_path):
+    """From step 5 on the parameters are corrupted behind the optimiser's back at every step: each
+    step restores (non-finite parameters), the second restore goes one good state further back, and
+    the third in a row stops the loop on that state (snapshots every step: good states are the
+    states after 3 and 4 applied steps when step 5 fails)."""
     ctx = make_ctx(tmp_path)
     model, trainable = make_problem()
+    after = {}
 
     def step(i):
-        if i >= 5:  # from step 5 on the parameters get corrupted behind the optimiser's back
+        if i >= 5:
             with torch.no_grad():
                 model.weight.fill_(float("inf"))
         return {"loss": (model.weight ** 2).sum() + model.bias.sum()}
-    result = train(ctx, trainable, step, iters=12, checkpoint_every=1, max_bad_steps=3)
-    assert result.restores >= 1 and result.skipped_steps == 7
-    assert torch.isfinite(model.weight).all()
+
+    def record(i):
+        after[i + 1] = model.weight.detach().clone()
+    result = train(ctx, trainable, step, iters=12, checkpoint_every=1, max_bad_steps=3, after_step=record)
+    assert result.guard_stop and result.restores == 3 and result.skipped_steps == 3 and result.step == 8
+    assert torch.equal(model.weight.detach(), after[3])
     state = torch.load(tmp_path / CHECKPOINT, weights_only=False)
     for tensor in state["trainable"]["modules"]["model"].values():
         assert torch.isfinite(tensor).all()
+
+
+def test_a_learning_rate_that_always_blows_up_stops_on_the_first_state(tmp_path, capsys):
+    """Adam with lr=1e30: every first step from the start state is finite (1e30 weights), every next
+    loss overflows. Three restores in a row stop the run after 3 x (1 + max_bad_steps) steps, on the
+    start state exactly, with one warning line."""
+    ctx = make_ctx(tmp_path)
+    model, trainable = make_problem(lr=1e30)
+    start = {k: v.clone() for k, v in model.state_dict().items()}
+    result = train(ctx, trainable, regression_step(ctx, model), iters=300, max_bad_steps=5)
+    assert result.guard_stop and result.restores == 3 and result.skipped_steps == 15 and result.step == 18
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, start[k])
+    err = capsys.readouterr().err
+    assert err.count("warning: training stopped at step 18 of 300: 3 restores in a row") == 1
+    assert ctx.write_metrics({})["guard_stop_step"] == 18
+
+
+def test_a_blow_up_that_stays_finite_for_a_whole_interval_is_stepped_over(tmp_path):
+    """After step 4 the weights jump to 1e10: the loss stays finite (~1e20) for two whole snapshot
+    intervals (15 steps each), so the state after 15 steps becomes a restore point; from step 40 the
+    huge weights overflow. The first restore brings back that huge state and fails again, the second
+    goes one good state further back (the start) and the fit then converges."""
+    ctx = make_ctx(tmp_path)
+    model, trainable = make_problem()
+    fit = regression_step(ctx, model)
+
+    def step(i):
+        out = fit(i)
+        if i >= 40 and float(model.weight.detach().abs().max()) > 1e9:
+            out["loss"] = out["loss"] * float("nan")
+        return out
+
+    def blow_up(i):
+        if i == 4:
+            with torch.no_grad():
+                model.weight.fill_(1e10)
+    result = train(ctx, trainable, step, iters=300, max_bad_steps=5, after_step=blow_up)
+    assert result.restores == 2 and result.skipped_steps == 10 and not result.guard_stop and result.step == 300
+    assert float((model.weight.detach() - torch.tensor([[1.0, -2.0, 0.5]])).abs().max()) < 0.05
 
 
 def test_a_blow_up_to_finite_values_is_not_the_state_a_restore_brings_back(tmp_path):

@@ -24,6 +24,7 @@ class RunContext:
     stopwatch: Stopwatch = field(default_factory=Stopwatch)
     params: Dict[str, Any] = field(default_factory=dict)
     interrupted: bool = False  # set by the training loop on SIGINT/SIGTERM
+    guard_stop_step: Optional[int] = None  # set by the training loop when its NaN guard stopped it (at that step)
     time_budget: float = 0.0  # > 0: wall seconds for the whole task (``time_budget=``); every training loop honours it
     precision: str = "fp32"  # fp32 | bf16: autocast of every training step's forward (``precision=``)
     reserve: float = 0.0  # seconds of ``time_budget`` kept for what follows the training loop (``reserve=``)
@@ -42,7 +43,7 @@ class RunContext:
     def write_metrics(self, metrics: Dict[str, Any]) -> Dict[str, Any]:
         """Write ``metrics.json`` (final figures + wall-clock ``seconds``) atomically; under a
         ``time_budget`` the task overran, also ``over_budget_seconds`` (what its budget did not hold:
-        the caller warns)."""
+        the caller warns), and ``guard_stop_step`` where the NaN guard stopped training."""
         out = dict(metrics)
         out.setdefault("seconds", round(self.stopwatch.elapsed, 4))
         left = self.seconds_left()
@@ -50,6 +51,8 @@ class RunContext:
             out["over_budget_seconds"] = round(-left, 2)
         if self.interrupted:
             out["interrupted"] = True
+        if self.guard_stop_step is not None:
+            out["guard_stop_step"] = int(self.guard_stop_step)
         out["device"] = str(self.device)
         write_json(self.path("metrics.json"), out)
         return out

@@ -22,6 +22,9 @@ optimiser and LR schedulers) and two callbacks, and gets, for free:
   is logged; after ``max_bad_steps`` consecutive failures the last good state is restored
   (a snapshot taken every ``checkpoint_every`` steps, or every twentieth of ``iters``, that a
   whole interval of clean steps followed: not the state a blow-up to huge finite values left);
+  a restore that fails again before a clean interval goes one good state further back, and
+  after ``max_restores`` such restores in a row the loop stops on the last good state with a
+  warning (every try from it blew up: nothing more to gain, e.g. a learning rate of 1e30);
 * checkpoints (``checkpoint.pt``, written atomically, never with non-finite parameters)
   every ``checkpoint_every`` steps, at the end, and on SIGINT/SIGTERM, after which the
   loop stops cleanly and the task writes its metrics so far;
@@ -123,6 +126,7 @@ class TrainResult:
     train_seconds: float = 0.0      # wall seconds of the steps run (evaluation excluded), resumed parts included
     steps_run: int = 0              # steps run, resumed parts included (not the steps of the schedule skipped)
     budget_stop: bool = False       # stopped by ``time_budget`` before ``iters``
+    guard_stop: bool = False        # stopped by the NaN guard: ``max_restores`` restores in a row blew up again
 
     @property
     def seconds_per_step(self) -> float:
@@ -243,7 +247,7 @@ def _grads_finite(params: List[torch.nn.Parameter]) -> bool:
 def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Tensor]],
           iters: int, eval_fn: Optional[Callable[[int], Dict[str, Any]]] = None,
           eval_every: int = 0, checkpoint_every: int = 0, resume: bool = False,
-          max_bad_steps: int = 5, desc: str = "train", log_every: int = 10,
+          max_bad_steps: int = 5, max_restores: int = 3, desc: str = "train", log_every: int = 10,
           after_step: Optional[Callable[[int], None]] = None,
           time_budget: Optional[float] = None, reserve: Optional[float] = None,
           reserve_evals: float = 0.0, horizon: Optional[Horizon] = None, log_prefix: str = "train",
@@ -263,6 +267,10 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
         checkpoint_every: steps between checkpoints (0: only at the end / on a signal).
         resume: continue from ``checkpoint.pt`` in ``ctx.out_dir`` when it exists.
         max_bad_steps: consecutive non-finite steps before the last good state is restored.
+        max_restores: restores in a row (no clean snapshot interval between them) after which
+            the loop stops on the last good state; from the second such restore on, the state
+            restored is the good state before the latest one (which may hold the start of a
+            blow-up that stayed finite for a whole interval).
         after_step: called after each applied step (e.g. to update an occupancy grid).
         time_budget: > 0: wall seconds for the whole task (``ctx.stopwatch.elapsed``); the
             loop stops when the next step, the final validation and ``reserve`` would not fit.
@@ -312,8 +320,9 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
     # the guard's restore point, promoted from the latest snapshot only once a whole snapshot
     # interval after it ran clean: a step that blows the parameters up to huge but finite values
     # passes the finite test, and the snapshot after it must not become what a restore brings back
-    good_state = copy.deepcopy(trainable.state_dict())
+    good_states = [copy.deepcopy(trainable.state_dict())]     # the last two restore points, oldest first
     pending_state: Optional[Dict[str, Any]] = None
+    restores_in_a_row, guard_stop = 0, False
     snapshot_every = checkpoint_every or max(1, iters // 20)
     bad_in_a_row = 0
     skipped, restores = int(before.get("skipped", 0)), int(before.get("restores", 0))
@@ -366,10 +375,14 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                 trainable.optimizer.zero_grad(set_to_none=True)
                 ctx.logger.scalar("guard/skipped_steps", skipped, step)
                 if bad_in_a_row >= max_bad_steps or not trainable.all_finite():
-                    trainable.load_state_dict(copy.deepcopy(good_state))
+                    restores_in_a_row += 1
+                    if restores_in_a_row >= 2 and len(good_states) > 1:
+                        good_states.pop()       # the latest restore point blew up again: one further back
+                    trainable.load_state_dict(copy.deepcopy(good_states[-1]))
                     restores += 1
                     bad_in_a_row = 0
                     ctx.logger.scalar("guard/restores", restores, step)
+                    guard_stop = restores_in_a_row >= max(1, int(max_restores))
             else:
                 bad_in_a_row = 0
                 for sched in trainable.schedulers:
@@ -388,14 +401,15 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                 metrics = clock.timed_eval(lambda: _evaluate(ctx, eval_fn, done, history))
             if ok and done % snapshot_every == 0:
                 if pending_state is not None:
-                    good_state = pending_state
+                    good_states = [good_states[-1], pending_state]
+                    restores_in_a_row = 0
                 pending_state = copy.deepcopy(trainable.state_dict())
             if checkpoint and checkpoint_every and done % checkpoint_every == 0:
                 history["counters"] = _counters(before, clock, skipped, restores)
                 save_checkpoint(ckpt_path, trainable, done, ctx.generator, history)
             if stop_at is not None and done == stop_at:
                 stop.signal = signal.SIGINT  # test hook: behave as if interrupted here
-            if stop.signal is not None:
+            if stop.signal is not None or guard_stop:
                 break
             if horizon is not None and clock.budget > 0:
                 horizon.update(done, clock.predicted_steps(ctx.stopwatch.elapsed, done, eval_fn is not None,
@@ -428,7 +442,14 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
     counters = history["counters"] = _counters(before, clock, skipped, restores)
     if checkpoint:
         save_checkpoint(ckpt_path, trainable, done, ctx.generator, history)
-    if skipped > int(before.get("skipped", 0)):
+    if guard_stop:
+        warning = (f"training stopped at step {done} of {iters}: {restores_in_a_row} restores in a row of the last good "
+                   f"state blew up again ({skipped} steps skipped as non-finite, guard/* in TensorBoard); the result "
+                   "is that good state: a learning rate too large?")
+        print(f"l3d_app: warning: {warning}", file=sys.stderr)
+        ctx.logger.text("train/guard", warning)
+        ctx.guard_stop_step = done
+    elif skipped > int(before.get("skipped", 0)):
         warning = (f"{skipped} of {counters['steps']} steps were skipped as non-finite, {restores} restores of the "
                    "last good state (guard/* in TensorBoard): a learning rate too large?")
         print(f"l3d_app: warning: {warning}", file=sys.stderr)
@@ -439,7 +460,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
     return TrainResult(step=done, metrics=metrics, interrupted=interrupted,
                        skipped_steps=skipped, restores=restores, history=list(history["eval"]),
                        train_seconds=counters["seconds"], steps_run=counters["steps"],
-                       budget_stop=clock.budget_stop)
+                       budget_stop=clock.budget_stop, guard_stop=guard_stop)
 
 
 def _counters(before: Dict[str, Any], clock: "_LoopClock", skipped: int, restores: int) -> Dict[str, Any]:
