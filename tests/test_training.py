@@ -97,6 +97,17 @@ def test_a_learning_rate_that_always_blows_up_stops_on_the_first_state(tmp_path,
     assert ctx.write_metrics({})["guard_stop_step"] == 18
 
 
+def test_failures_apart_by_a_clean_interval_each_restore_and_training_goes_on(tmp_path):
+    """Three bursts of five non-finite losses, 45 clean steps apart (snapshot interval 15): three
+    restores, none in a row, so the run neither steps further back nor stops, and converges."""
+    ctx = make_ctx(tmp_path)
+    model, trainable = make_problem()
+    bursts = set(range(50, 55)) | set(range(100, 105)) | set(range(150, 155))
+    result = train(ctx, trainable, regression_step(ctx, model, poison=bursts), iters=300, max_bad_steps=5)
+    assert result.restores == 3 and result.skipped_steps == 15 and not result.guard_stop and result.step == 300
+    assert float((model.weight.detach() - torch.tensor([[1.0, -2.0, 0.5]])).abs().max()) < 0.05
+
+
 def test_a_blow_up_that_stays_finite_for_a_whole_interval_is_stepped_over(tmp_path):
     """After step 4 the weights jump to 1e10: the loss stays finite (~1e20) for two whole snapshot
     intervals (15 steps each), so the state after 15 steps becomes a restore point; from step 40 the

@@ -267,7 +267,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
         checkpoint_every: steps between checkpoints (0: only at the end / on a signal).
         resume: continue from ``checkpoint.pt`` in ``ctx.out_dir`` when it exists.
         max_bad_steps: consecutive non-finite steps before the last good state is restored.
-        max_restores: restores in a row (no clean snapshot interval between them) after which
+        max_restores: restores in a row (no whole snapshot interval of clean steps between them) after which
             the loop stops on the last good state; from the second such restore on, the state
             restored is the good state before the latest one (which may hold the start of a
             blow-up that stayed finite for a whole interval).
@@ -322,7 +322,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
     # passes the finite test, and the snapshot after it must not become what a restore brings back
     good_states = [copy.deepcopy(trainable.state_dict())]     # the last two restore points, oldest first
     pending_state: Optional[Dict[str, Any]] = None
-    restores_in_a_row, guard_stop = 0, False
+    restores_in_a_row, clean_in_a_row, guard_stop = 0, 0, False
     snapshot_every = checkpoint_every or max(1, iters // 20)
     bad_in_a_row = 0
     skipped, restores = int(before.get("skipped", 0)), int(before.get("restores", 0))
@@ -371,6 +371,7 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
             if not ok:
                 skipped += 1
                 bad_in_a_row += 1
+                clean_in_a_row = 0
                 pending_state = None            # the latest snapshot may hold the start of the blow-up
                 trainable.optimizer.zero_grad(set_to_none=True)
                 ctx.logger.scalar("guard/skipped_steps", skipped, step)
@@ -385,6 +386,9 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                     guard_stop = restores_in_a_row >= max(1, int(max_restores))
             else:
                 bad_in_a_row = 0
+                clean_in_a_row += 1
+                if clean_in_a_row >= snapshot_every:     # a whole interval ran clean: the restores worked
+                    restores_in_a_row = 0
                 for sched in trainable.schedulers:
                     sched.step()
                 if after_step is not None:
@@ -402,7 +406,6 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
             if ok and done % snapshot_every == 0:
                 if pending_state is not None:
                     good_states = [good_states[-1], pending_state]
-                    restores_in_a_row = 0
                 pending_state = copy.deepcopy(trainable.state_dict())
             if checkpoint and checkpoint_every and done % checkpoint_every == 0:
                 history["counters"] = _counters(before, clock, skipped, restores)
