@@ -453,3 +453,28 @@ def test_pointnet2_task_beats_chance(compose, cache_dir, tmp_path):
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert m["accuracy"] > 1 / 3 + 0.25 and m["selected_on"] == "val", m
     assert torch.load(tmp_path / "best.pt", weights_only=False)["model_cfg"]["name"] == "pointnet2"
+
+
+def test_preview_gifs_stop_when_the_last_ones_cost_no_longer_fits(compose, tmp_path):
+    """Under a time budget the gifs (previews) are written while the last gif's cost still fits the
+    seconds left: with 1 ms left after the first, only the first is written, and a note says so;
+    without a budget all of them."""
+    from l3d_app.runtime.context import RunContext
+    from l3d_app.runtime.logger import RunLogger
+    from l3d_app.runtime.seed import seed_everything
+    from l3d_app.tasks.point_common import Evaluation, write_visuals
+
+    cfg = compose("task=pointnet_seg", "num_vis=3", "vis_failures=true", "num_frames=2", "image_size=32")
+    g = torch.Generator().manual_seed(0)
+    pts = torch.rand(6, 64, 3, generator=g)
+    target = torch.randint(0, 3, (6, 64), generator=g)
+    ev = Evaluation(pts, target.flip(1), target, 0.3)
+    class_of = torch.tensor([0, 0, 1, 1, 2, 2])
+    for budget, left, expect in ((0.0, None, (3, 3)), (60.0, iter([5.0, 1e-3, 1e-3]), (1, 0))):
+        ctx = RunContext(out_dir=tmp_path / f"b{budget:g}", device=torch.device("cpu"), generator=seed_everything(0),
+                         logger=RunLogger(tmp_path / f"b{budget:g}", enabled=False), time_budget=budget)
+        if left is not None:
+            ctx.seconds_left = lambda it=left: next(it, 1e-3)
+        out = write_visuals(cfg, ctx, ev, "seg", ["a", "b", "c"], class_of, ["x", "y", "z"])
+        assert (out["n_vis"], out["n_failure_gifs"]) == expect
+        assert len(list((ctx.out_dir / "vis").glob("*.gif"))) == sum(expect)
