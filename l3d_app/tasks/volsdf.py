@@ -85,6 +85,7 @@ from l3d_app.geometry.rays import camera_rays, pixel_axes
 from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
 from l3d_app.losses.free_space import fade_to_zero, free_stretch_loss, occupied_fraction, occupied_volume
 from l3d_app.losses.occupancy import coverage_bce
+from l3d_app.losses.patch_consistency import PatchConsistency, surface_crossing
 from l3d_app.metrics.surface_scores import surface_scores
 from l3d_app.models.level_schedule import LevelSchedule
 from l3d_app.models.sdf_gradients import field_with_gradient
@@ -160,6 +161,7 @@ def volsdf(cfg, ctx) -> dict:
     du, dv = pixel_axes(data.cameras[tr])                                     # (n_train, 3) per pixel step
     flat_cam = torch.arange(len(tr), device=ctx.device).repeat_interleave(data.cameras.height * data.cameras.width)
     n_rays, batch = flat_o.shape[0], int(cfg.batch_rays)
+    patches = _patch_consistency(cfg, data, tr)     # None with ncc.weight 0
     lo, hi = torch.tensor(box[0], device=ctx.device), torch.tensor(box[1], device=ctx.device)
     field_fn = field_with_gradient(model)
     stats = {"samples_per_ray": 0.0, "fine_samples_per_ray": 0.0, "train_seconds": 0.0, "cpu_seconds": 0.0,
@@ -224,7 +226,8 @@ def volsdf(cfg, ctx) -> dict:
         if bool(cfg.pixel_jitter):     # a uniformly random point of the pixel: the images are box-filtered (SSAA)
             j = rand((batch, 2), ctx.generator, ctx.device) - 0.5
             d = d + j[:, :1] * du[flat_cam[idx]] + j[:, 1:] * dv[flat_cam[idx]]
-        out = render(flat_o[idx], torch.nn.functional.normalize(d, dim=-1), perturb=True, generator=ctx.generator)
+        out_dirs = torch.nn.functional.normalize(d, dim=-1)
+        out = render(flat_o[idx], out_dirs, perturb=True, generator=ctx.generator)
         color_loss = ((out["color"] - flat_rgb[idx]) ** 2).mean()
         logs = {"color_loss": color_loss.detach(), "samples_per_ray": out["samples_per_ray"],
                 **{k: torch.tensor(v) for k, v in dens.stats().items()},
@@ -255,6 +258,15 @@ def volsdf(cfg, ctx) -> dict:
             f_free = model.sdf(pts)
             carve = free_stretch_loss(str(fs.loss), f_free, length, dens, iw)
             loss, logs["free_space"] = loss + w_now * carve, carve.detach()
+        if patches is not None:     # the surface where the training views' patches agree
+            hw = data.cameras.height * data.cameras.width
+            view, rest = idx // hw, idx % hw
+            t_hit, normal, hit = surface_crossing(out["t"].reshape(batch, -1), out["sdf"].reshape(batch, -1),
+                                                  out["grad"].reshape(batch, -1, 3))
+            ncc, figs = patches.loss(view, torch.stack([rest // data.cameras.width, rest % data.cameras.width], -1),
+                                     flat_o[idx], out_dirs, t_hit, normal, hit)
+            loss, logs["ncc_loss"] = loss + float(cfg.ncc.weight) * ncc, ncc.detach()
+            logs.update({k: torch.tensor(v) for k, v in figs.items()})
         stats["samples_per_ray"] = float(out["samples_per_ray"])
         stats["fine_samples_per_ray"] = float(out["fine_samples_per_ray"])
         return {**logs, "loss": loss}
@@ -311,6 +323,24 @@ def volsdf(cfg, ctx) -> dict:
         "background": [round(float(c), 4) for c in background["rgb"].detach().clamp(0, 1)],
     })
     return metrics
+
+
+def _patch_consistency(cfg, data, train_views: torch.Tensor):
+    """The multi-view patch loss of ``cfg.ncc`` over the training views, or None when its weight is 0."""
+    c = cfg.get("ncc")
+    if c is None or float(c.weight) <= 0:
+        return None
+    require_positive(c, "size", "sources", "best")
+    if int(c.size) % 2 == 0:
+        raise UserError(f"ncc.size must be odd (a patch centred on its pixel), got {c.size}")
+    if bool(cfg.pixel_jitter):
+        raise UserError("ncc.weight > 0 needs pixel_jitter=false (each patch is centred on its ray's pixel)")
+    if not hasattr(MODELS.get(str(cfg.model.name)), "sdf_rgb_grad"):
+        raise UserError(f"ncc.weight > 0 needs a field with an exact gradient (model=sdf_grid_field), "
+                        f"got model={cfg.model.name}")
+    return PatchConsistency.build(data.images[train_views], data.cameras[train_views], n_sources=int(c.sources),
+                                  size=int(c.size), best=int(c.best), min_std=float(c.min_std),
+                                  min_cos=float(c.min_cos))
 
 
 def sdf_and_gradient_at(model, points: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:

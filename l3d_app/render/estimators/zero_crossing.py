@@ -12,16 +12,24 @@ def first_crossing(sdf: torch.Tensor, t: torch.Tensor) -> Tuple[torch.Tensor, to
 
     Returns ``(t_cross (R,), found (R,) bool)``: ``t`` of the crossing by linear interpolation between the
     two samples that bracket it (``f_i > 0 >= f_{i+1}``); where no pair brackets one, ``found`` is False and
-    ``t_cross`` is the ray's first sample.
+    ``t_cross`` is the ray's first sample. Differentiable in ``sdf`` and ``t``.
     """
+    i, frac, found = crossing_bracket(sdf)
+    t0, t1 = t.gather(1, i)[:, 0], t.gather(1, i + 1)[:, 0]
+    return torch.where(found, t0 + frac * (t1 - t0), t[:, 0]), found
+
+
+def crossing_bracket(sdf: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Where :func:`first_crossing` interpolates: ``(i (R, 1) long, frac (R,), found (R,) bool)``, the
+    crossing lying at ``frac`` of the way from sample ``i`` to ``i + 1`` (``i`` 0 where none is found).
+    Any per-sample quantity ``q`` (R, S, ...) at the crossing is ``lerp(q[i], q[i + 1], frac)``."""
     outside = sdf > 0
     bracket = outside[:, :-1] & ~outside[:, 1:]
     found = bracket.any(dim=-1)
     i = bracket.to(torch.uint8).argmax(dim=-1, keepdim=True)       # first True (0 where none)
     f0, f1 = sdf.gather(1, i)[:, 0], sdf.gather(1, i + 1)[:, 0]
-    t0, t1 = t.gather(1, i)[:, 0], t.gather(1, i + 1)[:, 0]
     frac = (f0 / (f0 - f1).clamp_min(torch.finfo(sdf.dtype).tiny)).clamp(0.0, 1.0)
-    return torch.where(found, t0 + frac * (t1 - t0), t[:, 0]), found
+    return i, frac, found
 
 
 @torch.no_grad()
