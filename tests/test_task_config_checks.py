@@ -34,6 +34,11 @@ def test_nonnegative_accepts_zero_and_positive_and_positive_rejects_zero():
     ("volsdf", "free_space.points=0", "free_space.points must be a positive number"),
     ("volsdf", "free_space.loss=inside", "free_space.loss must be occupancy, density or outside"),
     ("volsdf", "free_space.until=0", "free_space.until must be null or lie in"),
+    ("volsdf", "ncc.size=4", "ncc.size must be odd"),
+    ("volsdf", "ncc.sources=0", "ncc.sources must be a positive integer"),
+    ("volsdf", "ncc.best=5", "ncc.best must be at most ncc.sources"),
+    ("volsdf", "ncc.weight=-1", "ncc.weight must be a number >= 0"),
+    ("volsdf", "ncc.weight=0.5 pixel_jitter=true", "ncc.weight > 0 needs pixel_jitter=false"),
     ("svr_train", "lr_floor=-1", "lr_floor must be a number >= 0"),          # used to train with a negative LR at the end
     ("svr_train", "error_max=0", "error_max must be a positive number"),
     ("svr_train", "eval_view=-1", "eval_view must be a number >= 0"),
@@ -43,7 +48,7 @@ def test_task_rejects_bad_values_before_loading_data(compose, task, override, ne
     from l3d_app.registry import TASKS
     import l3d_app.tasks  # noqa: F401
 
-    cfg = compose(f"task={task}", override, "data=blender", "data.root=/no/such/folder")
+    cfg = compose(f"task={task}", *override.split(), "data=blender", "data.root=/no/such/folder")
     with pytest.raises(UserError, match=needle):
         TASKS.get(task)(cfg, None)
 

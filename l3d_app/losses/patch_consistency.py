@@ -23,6 +23,7 @@ import torch
 
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import pixel_axes
+from l3d_app.geometry.textures import sample_texture_indexed
 from l3d_app.render.estimators.zero_crossing import crossing_bracket
 
 
@@ -64,21 +65,15 @@ def patch_offsets(size: int, dtype=torch.float32, device=None) -> torch.Tensor:
 def bilinear(images: torch.Tensor, view: torch.Tensor, uv: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     """Bilinear look-up of single-channel ``images`` (V, H, W) at pixel coordinates ``uv`` (..., 2)
     of images ``view`` (...) (long): ``(values (...), inside (...) bool)``; a coordinate whose four
-    neighbours are not all in the image reads 0 and is not ``inside``. Differentiable in ``uv``."""
+    neighbours are not all in the image reads 0 and is not ``inside``. Differentiable in ``uv``
+    (:func:`~l3d_app.geometry.textures.sample_texture_indexed`, pixel centres at +0.5)."""
     _, h, w = images.shape
-    x, y = uv[..., 0] - 0.5, uv[..., 1] - 0.5                      # pixel centres at +0.5
+    x, y = uv[..., 0] - 0.5, uv[..., 1] - 0.5
     inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & torch.isfinite(x) & torch.isfinite(y)
-    x, y = torch.where(inside, x, torch.zeros_like(x)), torch.where(inside, y, torch.zeros_like(y))
-    x0 = x.detach().floor().clamp(0, w - 2)
-    y0 = y.detach().floor().clamp(0, h - 2)
-    ax, ay = x - x0, y - y0
-    base = view * (h * w) + y0.long() * w + x0.long()
-    flat = images.reshape(-1)
-    v00, v01 = flat[base], flat[base + 1]
-    v10, v11 = flat[base + w], flat[base + w + 1]
-    top = v00 + ax * (v01 - v00)
-    bottom = v10 + ax * (v11 - v10)
-    return torch.where(inside, top + ay * (bottom - top), torch.zeros_like(top)), inside
+    uv = torch.where(inside[..., None], uv, torch.full_like(uv, 0.5))
+    tex_uv = torch.stack([uv[..., 0] / w, 1.0 - uv[..., 1] / h], dim=-1).reshape(-1, 2)   # v up, as OBJ
+    values = sample_texture_indexed(images[..., None], tex_uv, view.reshape(-1))[:, 0].reshape(inside.shape)
+    return torch.where(inside, values, torch.zeros_like(values)), inside
 
 
 def ncc(a: torch.Tensor, b: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:

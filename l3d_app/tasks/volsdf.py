@@ -124,6 +124,7 @@ def volsdf(cfg, ctx) -> dict:
     require_mesh_resolution(cfg)
     require_mesh_formats(cfg)
     check_free_space_config(cfg.free_space)
+    _check_ncc(cfg)
     fs = resolve_free_space(cfg.free_space, cfg.density.name)     # steps=auto: on with density=volsdf only
     if int(fs.steps) > 0 and str(fs.loss) == "density" and str(cfg.density.name) != "volsdf":
         raise UserError(f"free_space.loss=density needs density=volsdf (a density per point), got density="
@@ -325,19 +326,35 @@ def volsdf(cfg, ctx) -> dict:
     return metrics
 
 
+def _check_ncc(cfg) -> None:
+    """UserError for a bad ``ncc`` block, before any data is read (one line, naming the key)."""
+    c = cfg.get("ncc")
+    if c is None:
+        return
+    for key in ("weight", "min_std", "min_cos"):
+        value = c.get(key)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+            raise UserError(f"ncc.{key} must be a number >= 0, got {value!r}")
+    for key in ("size", "sources", "best"):
+        value = c.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise UserError(f"ncc.{key} must be a positive integer, got {value!r}")
+    if c.size % 2 == 0:
+        raise UserError(f"ncc.size must be odd (a patch centred on its pixel), got {c.size}")
+    if c.best > c.sources:
+        raise UserError(f"ncc.best must be at most ncc.sources ({c.sources}), got {c.best}")
+    if float(c.weight) > 0 and bool(cfg.pixel_jitter):
+        raise UserError("ncc.weight > 0 needs pixel_jitter=false (each patch is centred on its ray's pixel)")
+    if float(c.weight) > 0 and not hasattr(MODELS.get(str(cfg.model.name)), "sdf_rgb_grad"):
+        raise UserError(f"ncc.weight > 0 needs a field with an exact gradient (model=sdf_grid_field), "
+                        f"got model={cfg.model.name}")
+
+
 def _patch_consistency(cfg, data, train_views: torch.Tensor):
     """The multi-view patch loss of ``cfg.ncc`` over the training views, or None when its weight is 0."""
     c = cfg.get("ncc")
     if c is None or float(c.weight) <= 0:
         return None
-    require_positive(c, "size", "sources", "best")
-    if int(c.size) % 2 == 0:
-        raise UserError(f"ncc.size must be odd (a patch centred on its pixel), got {c.size}")
-    if bool(cfg.pixel_jitter):
-        raise UserError("ncc.weight > 0 needs pixel_jitter=false (each patch is centred on its ray's pixel)")
-    if not hasattr(MODELS.get(str(cfg.model.name)), "sdf_rgb_grad"):
-        raise UserError(f"ncc.weight > 0 needs a field with an exact gradient (model=sdf_grid_field), "
-                        f"got model={cfg.model.name}")
     return PatchConsistency.build(data.images[train_views], data.cameras[train_views], n_sources=int(c.sources),
                                   size=int(c.size), best=int(c.best), min_std=float(c.min_std),
                                   min_cos=float(c.min_cos))
