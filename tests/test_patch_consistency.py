@@ -125,6 +125,21 @@ def test_hard_cases_count_nothing_and_stay_finite(scene):
     assert torch.isfinite(t_mix.grad).all()
 
 
+def test_with_coverage_only_patches_wholly_on_the_object_count(scene):
+    cams, images, _ = scene
+    view, pixel, o, d, t, n = rays_of_view(cams, 3)
+    hit = torch.ones(len(t), dtype=torch.bool)
+    masks = torch.ones(images.shape[:3], dtype=torch.float64)
+    masks[3, :, 30:] = 0.0                     # the right part of view 3 is background
+    pc = PatchConsistency.build(images, cams, masks=masks)
+    loss, figs = pc.loss(view, pixel, o, d, t, n, hit)
+    right = pixel[:, 1] + 2 >= 30              # a 5x5 patch reaching column 30 or beyond
+    assert figs["ncc_rays"] == pytest.approx(float((~right).double().mean()), abs=1e-9)
+    assert figs["ncc"] > 0.97 and float(loss) < 0.015
+    masks[3, :, 30:] = 0.6                     # partly covered, above min_alpha 0.5: counts
+    assert pc.loss(view, pixel, o, d, t, n, hit)[1]["ncc_rays"] > 0.9
+
+
 def test_bilinear_against_a_naive_loop():
     g = torch.Generator().manual_seed(0)
     images = torch.rand(2, 5, 7, generator=g, dtype=torch.float64)

@@ -17,7 +17,7 @@ units for points, pixels for image coordinates, grey levels in [0, 1].
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Tuple
+from typing import Dict, Optional, Tuple
 
 import torch
 
@@ -96,6 +96,8 @@ class PatchConsistency:
         min_std: grey std (0-1 levels) below which a reference patch has no texture to match;
         min_cos: least ``|n . d|`` between the normal and the reference ray (grazing planes warp
             unstably), and least cosine between the normal and each source's direction to ``x``.
+        masks: (V, H, W) the images' coverage (alpha) or None; with it only reference patches whose
+            every pixel has coverage >= ``min_alpha`` count (a patch across a silhouette is not one plane).
     """
 
     images: torch.Tensor
@@ -105,6 +107,8 @@ class PatchConsistency:
     best: int = 2
     min_std: float = 0.01
     min_cos: float = 0.2
+    masks: Optional[torch.Tensor] = None
+    min_alpha: float = 0.5
 
     @staticmethod
     def build(images: torch.Tensor, cameras: Cameras, n_sources: int = 4, **kw) -> "PatchConsistency":
@@ -129,8 +133,11 @@ class PatchConsistency:
         off = patch_offsets(self.size, dtype, origins.device)                        # (P, 2)
         rows, cols = pixel[:, 0:1] + off[None, :, 1].long(), pixel[:, 1:2] + off[None, :, 0].long()
         in_ref = ((rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)).all(-1)
-        ref = self.images.reshape(-1)[view[:, None] * (h * w) + rows.clamp(0, h - 1) * w + cols.clamp(0, w - 1)]
+        at = view[:, None] * (h * w) + rows.clamp(0, h - 1) * w + cols.clamp(0, w - 1)   # (R, P) flat pixels
+        ref = self.images.reshape(-1)[at]
         textured = ref.std(dim=-1) >= self.min_std                                    # (R,)
+        if self.masks is not None:       # patches wholly on the object: one surface, no silhouette across them
+            in_ref = in_ref & (self.masks.reshape(-1)[at] >= self.min_alpha).all(-1)
         n = torch.nn.functional.normalize(normal, dim=-1)
         cos_ref = (n * dirs).sum(-1)
         x = origins + t_hit[:, None] * dirs                                           # (R, 3)

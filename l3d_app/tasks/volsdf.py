@@ -355,9 +355,10 @@ def _patch_consistency(cfg, data, train_views: torch.Tensor):
     c = cfg.get("ncc")
     if c is None or float(c.weight) <= 0:
         return None
+    masks = data.masks[train_views] if data.masks is not None and bool(c.within_mask) else None
     return PatchConsistency.build(data.images[train_views], data.cameras[train_views], n_sources=int(c.sources),
                                   size=int(c.size), best=int(c.best), min_std=float(c.min_std),
-                                  min_cos=float(c.min_cos))
+                                  min_cos=float(c.min_cos), masks=masks)
 
 
 def sdf_and_gradient_at(model, points: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
