@@ -38,6 +38,7 @@ def test_nonnegative_accepts_zero_and_positive_and_positive_rejects_zero():
     ("volsdf", "ncc.sources=0", "ncc.sources must be a positive integer"),
     ("volsdf", "ncc.best=5", "ncc.best must be at most ncc.sources"),
     ("volsdf", "ncc.weight=-1", "ncc.weight must be a number >= 0"),
+    ("volsdf", "ncc.until=0", "ncc.until must be null or lie in"),
     ("volsdf", "ncc.weight=0.5 pixel_jitter=true", "ncc.weight > 0 needs pixel_jitter=false"),
     ("svr_train", "lr_floor=-1", "lr_floor must be a number >= 0"),          # used to train with a negative LR at the end
     ("svr_train", "error_max=0", "error_max must be a positive number"),

@@ -259,14 +259,15 @@ def volsdf(cfg, ctx) -> dict:
             f_free = model.sdf(pts)
             carve = free_stretch_loss(str(fs.loss), f_free, length, dens, iw)
             loss, logs["free_space"] = loss + w_now * carve, carve.detach()
-        if patches is not None:     # the surface where the training views' patches agree
+        w_ncc = float(cfg.ncc.weight) * fade_to_zero(nominal / max(int(cfg.iters), 1), cfg.ncc.get("until"))
+        if patches is not None and w_ncc > 0:     # the surface where the training views' patches agree
             hw = data.cameras.height * data.cameras.width
             view, rest = idx // hw, idx % hw
             t_hit, normal, hit = surface_crossing(out["t"].reshape(batch, -1), out["sdf"].reshape(batch, -1),
                                                   out["grad"].reshape(batch, -1, 3))
             ncc, figs = patches.loss(view, torch.stack([rest // data.cameras.width, rest % data.cameras.width], -1),
                                      flat_o[idx], out_dirs, t_hit, normal, hit)
-            loss, logs["ncc_loss"] = loss + float(cfg.ncc.weight) * ncc, ncc.detach()
+            loss, logs["ncc_loss"] = loss + w_ncc * ncc, ncc.detach()
             logs.update({k: torch.tensor(v) for k, v in figs.items()})
         stats["samples_per_ray"] = float(out["samples_per_ray"])
         stats["fine_samples_per_ray"] = float(out["fine_samples_per_ray"])
@@ -341,6 +342,9 @@ def _check_ncc(cfg) -> None:
             raise UserError(f"ncc.{key} must be a positive integer, got {value!r}")
     if c.size % 2 == 0:
         raise UserError(f"ncc.size must be odd (a patch centred on its pixel), got {c.size}")
+    until = c.get("until")
+    if until is not None and (isinstance(until, bool) or not isinstance(until, (int, float)) or not 0 < until <= 1):
+        raise UserError(f"ncc.until must be null or lie in (0, 1] (a fraction of the steps), got {until!r}")
     if c.best > c.sources:
         raise UserError(f"ncc.best must be at most ncc.sources ({c.sources}), got {c.best}")
     if float(c.weight) > 0 and bool(cfg.pixel_jitter):
