@@ -29,7 +29,8 @@ def _true_mesh_diagonal() -> float:
 
 
 TINY = ["data.image_size=32", "data.n_train=48", "data.n_val=2", "data.n_test=2", "data.antialias=1",
-        "tensorboard=false", "threads=1", "free_space.steps=0"]   # the free-space stage: test_volsdf_free_space.py
+        "tensorboard=false", "threads=1", "free_space.steps=0",   # the free-space stage: test_volsdf_free_space.py
+        "ncc.weight=0"]   # the patch loss (5 x 5 patches, a large share of a 32 px image): test_patch_consistency.py
 
 
 def test_eikonal_loss_is_finite_at_kinks_and_zero_for_exact_sdfs():
