@@ -177,3 +177,22 @@ def test_bunny_loader(tmp_path):
     torch.testing.assert_close(cloud.points[1] - cloud.points[0], torch.from_numpy(pts[2] - pts[0]))
     with pytest.raises(UserError):
         bunny_points(str(tmp_path / "missing.npz"))
+
+
+def test_the_patch_loss_acts_until_its_fraction_of_the_steps(compose, tmp_path):
+    """The default patch consistency is wired into the training step: logged with textured rays counting
+    while its weight is above zero, and absent from the log once ``ncc.until`` x iters is reached."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cfg = compose("task=volsdf", *[o for o in TINY if not o.startswith(("ncc.", "tensorboard"))], "tensorboard=true",
+                  "data.image_size=48", f"data.cache_dir={tmp_path / 'cache'}", "iters=40", "eval_every=40",
+                  "batch_rays=256", "pretrain_steps=20", "gif_frames=0", "mesh_resolution=24", "eval_points=500")
+    assert (cfg.ncc.weight, cfg.ncc.until) == (0.1, 0.5)
+    run_task(cfg, out_dir=tmp_path / "run")
+    events = EventAccumulator(str(next((tmp_path / "run").glob("events.out.tfevents.*"))), size_guidance={"scalars": 0})
+    events.Reload()
+    rays = {e.step: e.value for e in events.Scalars("train/ncc_rays")}
+    ncc = {e.step: e.value for e in events.Scalars("train/ncc")}
+    assert sorted(rays) == [0, 10] and min(rays.values()) > 0.02      # logged every 10 steps while it acts
+    assert all(-1.0 <= v <= 1.0 for v in ncc.values())
+    assert 30 in {e.step for e in events.Scalars("train/color_loss")}   # the run went on without it
