@@ -28,7 +28,7 @@ from l3d_app.render.radiance import render_field_rays
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import randint, randperm
 from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.common import background_parameter, require_nonnegative, require_positive
+from l3d_app.tasks.common import background_parameter, require_fade_end, require_nonnegative, require_positive
 
 FILE = "free_space.pt"
 
@@ -52,9 +52,7 @@ def check_free_space_config(cfg) -> None:
         raise UserError(f"free_space.mix must lie in [0, 1), got {mix!r}")
     if str(cfg.get("loss")) not in ("occupancy", "density", "outside"):
         raise UserError(f"free_space.loss must be occupancy, density or outside, got {cfg.get('loss')!r}")
-    until = cfg.get("until")
-    if until is not None and (isinstance(until, bool) or not isinstance(until, (int, float)) or not 0 < until <= 1):
-        raise UserError(f"free_space.until must be null or lie in (0, 1] (a fraction of the steps), got {until!r}")
+    require_fade_end(cfg.get("until"), "free_space.until")
     if float(cfg.opacity) > 1.0:
         raise UserError(f"free_space.opacity must lie in (0, 1] (an accumulated opacity), got {cfg.opacity}")
 

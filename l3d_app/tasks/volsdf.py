@@ -105,8 +105,8 @@ from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import (background_parameter, require_mesh_formats, require_mesh_resolution,
-                                 require_nonnegative, require_positive)
+from l3d_app.tasks.common import (background_parameter, require_fade_end, require_mesh_formats,
+                                 require_mesh_resolution, require_nonnegative, require_positive)
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
                                         write_turntables)
 from l3d_app.tasks.free_space_common import FILE as FREE_SPACE_FILE
@@ -342,9 +342,7 @@ def _check_ncc(cfg) -> None:
             raise UserError(f"ncc.{key} must be a positive integer, got {value!r}")
     if c.size % 2 == 0:
         raise UserError(f"ncc.size must be odd (a patch centred on its pixel), got {c.size}")
-    until = c.get("until")
-    if until is not None and (isinstance(until, bool) or not isinstance(until, (int, float)) or not 0 < until <= 1):
-        raise UserError(f"ncc.until must be null or lie in (0, 1] (a fraction of the steps), got {until!r}")
+    require_fade_end(c.get("until"), "ncc.until")
     if c.best > c.sources:
         raise UserError(f"ncc.best must be at most ncc.sources ({c.sources}), got {c.best}")
     if float(c.weight) > 0 and bool(cfg.pixel_jitter):
