@@ -140,6 +140,31 @@ def test_with_coverage_only_patches_wholly_on_the_object_count(scene):
     assert pc.loss(view, pixel, o, d, t, n, hit)[1]["ncc_rays"] > 0.9
 
 
+def test_under_bf16_autocast_it_computes_in_float32(scene):
+    """The step's forward runs under ``precision=bf16`` autocast: the loss must not warp in bf16."""
+    from l3d_app.runtime.precision import autocast
+
+    cams, images, _ = scene
+    pc = PatchConsistency.build(images.float(), cams.to(dtype=torch.float32))
+    view, pixel, o, d, t, n = (v.float() if v.is_floating_point() else v for v in rays_of_view(cams, 4))
+    hit = torch.ones(len(t), dtype=torch.bool)
+    t_ref = (t + 0.02).requires_grad_(True)
+    ref, _ = pc.loss(view, pixel, o, d, t_ref, n, hit)
+    ref.backward()
+    t_auto = (t + 0.02).requires_grad_(True)
+    with autocast("bf16", "cpu"):
+        got, _ = pc.loss(view, pixel, o, d, t_auto, n, hit)
+    got.backward()
+    assert got.dtype == torch.float32 and float(got.detach()) == pytest.approx(float(ref.detach()), rel=1e-6)
+    torch.testing.assert_close(t_auto.grad, t_ref.grad, rtol=1e-5, atol=1e-7)
+    # a bf16 surface distance (an autocast network's output) is read in float32, not warped in bf16
+    t_bf16 = (t + 0.02).to(torch.bfloat16)
+    with autocast("bf16", "cpu"):
+        got16, _ = pc.loss(view, pixel, o, d, t_bf16, n, hit)
+    want16, _ = pc.loss(view, pixel, o, d, t_bf16.float(), n, hit)
+    assert got16.dtype == torch.float32 and float(got16) == pytest.approx(float(want16), rel=1e-6)
+
+
 def test_bilinear_against_a_naive_loop():
     g = torch.Generator().manual_seed(0)
     images = torch.rand(2, 5, 7, generator=g, dtype=torch.float64)

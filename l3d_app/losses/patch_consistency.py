@@ -126,8 +126,15 @@ class PatchConsistency:
                 (any length, either sign); ``hit`` (R,) bool rays that reach a surface.
         Returns:
             ``(loss (), {"ncc_rays": share of rays that count, "ncc": their mean best NCC})``; a loss of
-            0 (no gradient) where no ray counts.
+            0 (no gradient) where no ray counts. Computed in at least float32 with autocast off (pixel
+            coordinates of ~100 need more than bf16's 8 bits), whatever the caller's precision.
         """
+        work = torch.promote_types(torch.promote_types(origins.dtype, torch.float32), self.cameras.R.dtype)
+        with torch.autocast(origins.device.type, enabled=False):
+            return self._loss(view, pixel, origins.to(work), dirs.to(work), t_hit.to(work), normal.to(work), hit)
+
+    def _loss(self, view, pixel, origins, dirs, t_hit, normal, hit) -> Tuple[torch.Tensor, Dict[str, float]]:
+        """:meth:`loss` in the inputs' precision."""
         cams, dtype = self.cameras, origins.dtype
         h, w = cams.height, cams.width
         off = patch_offsets(self.size, dtype, origins.device)                        # (P, 2)
