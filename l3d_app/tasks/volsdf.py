@@ -37,6 +37,11 @@
   ``optim=warmup_cosine`` (Adam eps 1e-15, ``warmup_steps`` linear warm-up then cosine decay to
   ``lr * lr_final_ratio``).
   ``pixel_jitter=true`` sends each training ray through a random point of its pixel.
+* multi-view patch consistency (``ncc.*``, Geo-NeuS's NCC): each training ray's first zero crossing and
+  normal warp its grey patch into the nearest training views
+  (:class:`~l3d_app.losses.patch_consistency.PatchConsistency`); ``ncc.weight`` x (1 - NCC) / 2, falling
+  linearly to 0 at ``ncc.until`` of the steps (patches assume surfaces that look alike from nearby views:
+  kept to the end it hurt a glossy development scene; docs/measured/volsdf.md).
 * known free space (``free_space.steps``: ``auto`` = 600 steps with density=volsdf, off with neus): a short radiance-field fit first
   (:mod:`~l3d_app.tasks.free_space_common`) marks, on each training ray, the stretch before its
   opacity reaches ``free_space.opacity`` (less ``free_space.margin``, and less ``free_space.margin_beta``
@@ -259,8 +264,9 @@ def volsdf(cfg, ctx) -> dict:
             f_free = model.sdf(pts)
             carve = free_stretch_loss(str(fs.loss), f_free, length, dens, iw)
             loss, logs["free_space"] = loss + w_now * carve, carve.detach()
-        w_ncc = float(cfg.ncc.weight) * fade_to_zero(nominal / max(int(cfg.iters), 1), cfg.ncc.get("until"))
-        if patches is not None and w_ncc > 0:     # the surface where the training views' patches agree
+        w_ncc = 0.0 if patches is None else float(cfg.ncc.weight) * fade_to_zero(nominal / max(int(cfg.iters), 1),
+                                                                                 cfg.ncc.get("until"))
+        if w_ncc > 0:     # the surface where the training views' patches agree
             hw = data.cameras.height * data.cameras.width
             view, rest = idx // hw, idx % hw
             t_hit, normal, hit = surface_crossing(out["t"].reshape(batch, -1), out["sdf"].reshape(batch, -1),
