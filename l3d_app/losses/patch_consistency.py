@@ -158,11 +158,9 @@ class PatchConsistency:
         s = plane / torch.where(denom.abs() > 1e-6, denom, torch.ones_like(denom))
         pts = origins[:, None] + s[..., None] * d_patch                               # (R, P, 3)
         src = self.sources[view]                                                      # (R, k)
-        cam_pts = torch.einsum("rkij,rpj->rkpi", cams.R[src], pts) + cams.t[src][:, :, None]   # (R, k, P, 3)
-        z = cam_pts[..., 2]
-        zs = torch.where(z > 1e-6, z, torch.ones_like(z))
-        uv = torch.stack([cams.fx[src][..., None] * cam_pts[..., 0] / zs + cams.cx[src][..., None],
-                          cams.fy[src][..., None] * cam_pts[..., 1] / zs + cams.cy[src][..., None]], dim=-1)
+        r, k, p = src.shape[0], src.shape[1], pts.shape[1]
+        uv, z = cams[src.reshape(-1)].project(pts.repeat_interleave(k, dim=0))       # (R k, P, 2), (R k, P)
+        uv, z = uv.reshape(r, k, p, 2), z.reshape(r, k, p)
         values, inside = bilinear(self.images, src[..., None].expand(z.shape), uv)   # (R, k, P)
         to_src = torch.nn.functional.normalize(cams.centers()[src] - x[:, None], dim=-1)   # (R, k, 3)
         facing = ((to_src * n[:, None]).sum(-1) * torch.sign(-cos_ref)[:, None]) >= self.min_cos
