@@ -105,7 +105,8 @@ def test_a_neus_silhouette_lies_on_the_zero_level_set(s):
         assert opacity == pytest.approx(1 / (1 + math.exp(s * h)), abs=2e-3)
 
 
-@pytest.mark.parametrize("override", ["density_along_ray=true", "quadrature=linear", "alpha=50"])
+@pytest.mark.parametrize("override", ["density_along_ray=true", "quadrature=linear", "alpha=50", "beta=0.1",
+                                      "beta_mode=learnable", "beta_end=0.002", "beta_min=0.0005"])
 def test_volsdf_only_knobs_are_refused_with_neus(compose, override):
     import l3d_app.tasks  # noqa: F401
     from l3d_app.errors import UserError
@@ -116,3 +117,26 @@ def test_volsdf_only_knobs_are_refused_with_neus(compose, override):
     cfg = compose("task=volsdf", override, "data=blender", "data.root=/no/such/folder")
     with pytest.raises(UserError, match="/no/such/folder"):      # accepted with VolSDF: stops at the data
         TASKS.get("volsdf")(cfg, None)
+
+
+@pytest.mark.parametrize("override", ["s=200", "s_mode=learnable", "s_end=500"])
+def test_neus_only_knobs_are_refused_with_volsdf(compose, override):
+    """``s=200`` under the default VolSDF density would be ignored: refused, naming density=neus."""
+    import l3d_app.tasks  # noqa: F401
+    from l3d_app.errors import UserError
+    from l3d_app.registry import TASKS
+    cfg = compose("task=volsdf", override, "data=blender", "data.root=/no/such/folder")
+    with pytest.raises(UserError, match="needs density=neus, got density=volsdf"):
+        TASKS.get("volsdf")(cfg, None)
+    cfg = compose("task=volsdf", "density=neus", override, "data=blender", "data.root=/no/such/folder")
+    with pytest.raises(UserError, match="/no/such/folder"):      # accepted with NeuS: stops at the data
+        TASKS.get("volsdf")(cfg, None)
+
+
+def test_the_refused_knobs_shipped_values_are_the_configs(compose):
+    """The check compares each knob with the value conf/task/volsdf.yaml ships: the two must agree, or a
+    default run of either density would be refused (or a changed knob let through)."""
+    from l3d_app.tasks.volsdf import NEUS_ONLY, VOLSDF_ONLY
+    cfg = compose("task=volsdf")
+    for key, shipped in {**VOLSDF_ONLY, **NEUS_ONLY}.items():
+        assert cfg.get(key) == shipped, key

@@ -119,6 +119,27 @@ from l3d_app.tasks.free_space_common import (MIN_STAGE_SECONDS, check_free_space
                                                resolve_free_space, stage_deadline)
 
 
+VOLSDF_ONLY = {"density_along_ray": False, "quadrature": "left", "alpha": None, "beta": 0.3, "beta_mode": "anneal",
+               "beta_end": 0.005, "beta_min": 0.001}
+"""VolSDF's own top-level knobs and the values conf/task/volsdf.yaml ships (tests/test_neus_schedule.py checks them)."""
+NEUS_ONLY = {"s": 64.0, "s_mode": "fixed", "s_end": 200.0}
+"""NeuS's own top-level knobs and their shipped values (``anneal_fraction`` and ``lr_beta`` serve both densities)."""
+
+
+def _refuse_the_other_densitys_knobs(cfg) -> None:
+    """A knob of one density set away from its shipped value while the other density runs would be
+    silently ignored (``density=neus beta=0.1``): one line instead, naming the density it needs."""
+    name = str(cfg.density.name)
+    for needs, knobs in (("volsdf", VOLSDF_ONLY), ("neus", NEUS_ONLY)):
+        if name == needs:
+            continue
+        for key, shipped in knobs.items():
+            value = cfg.get(key, shipped)
+            if value != shipped:
+                hint = " (NeuS's transition width is 1 / s: s, s_mode, s_end)" if needs == "volsdf" else ""
+                raise UserError(f"{key}={value} needs density={needs}, got density={name}{hint}")
+
+
 @TASKS.register("volsdf")
 def volsdf(cfg, ctx) -> dict:
     """Train on the train views, validate on val, test once; surface scores, gifs, mesh, metrics."""
@@ -134,10 +155,7 @@ def volsdf(cfg, ctx) -> dict:
     if int(fs.steps) > 0 and str(fs.loss) == "density" and str(cfg.density.name) != "volsdf":
         raise UserError(f"free_space.loss=density needs density=volsdf (a density per point), got density="
                         f"{cfg.density.name}: use free_space.loss=occupancy or outside")
-    if str(cfg.density.name) != "volsdf":     # VolSDF's own knobs would be silently ignored
-        for key, default in (("density_along_ray", False), ("quadrature", "left"), ("alpha", None)):
-            if cfg.get(key, default) != default:
-                raise UserError(f"{key}={cfg.get(key)} needs density=volsdf, got density={cfg.density.name}")
+    _refuse_the_other_densitys_knobs(cfg)
     if bool(cfg.density.get("along_ray", False)) and not hasattr(MODELS.get(str(cfg.model.name)), "sdf_rgb_grad"):
         raise UserError(f"density_along_ray needs a field with an exact gradient at evaluation (model=sdf_grid_field), "
                         f"got model={cfg.model.name}")
