@@ -31,7 +31,7 @@ from l3d_app.runtime.device import resolve_device
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.precision import check_precision
 from l3d_app.runtime.seed import seed_everything
-from l3d_app.sweep_jobs import record_failed_job, sweep_job_label
+from l3d_app.sweep_jobs import record_failed_job, refused_objective, remember_refused_objective, sweep_job_label
 from l3d_app.tasks.common import require_run_keys
 from l3d_app.tasks.override_common import check_command_line_types
 
@@ -136,6 +136,11 @@ def run_task(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]
     load_registries()
     task = TASKS.get(str(cfg.task_name))
     require_run_keys(cfg)
+    objective = cfg.get("objective")
+    earlier = refused_objective(str(cfg.task_name), str(objective)) if objective else None
+    if earlier is not None and sweep_job_label() is not None:
+        raise UserError(f"objective '{objective}' was refused after {earlier} of this sweep ran {cfg.task_name} "
+                        "(its line above says why): this job is not run")
     precision = check_precision(str(cfg.get("precision", "fp32")))
     out_dir = Path(out_dir) if out_dir is not None else _hydra_output_dir()
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -167,13 +172,18 @@ def run_task(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]
     if ctx.interrupted:
         raise RunInterrupted(f"interrupted; checkpoint and metrics so far are in {out_dir} "
                              "(rerun with resume=true and the same hydra.run.dir to continue)")
-    objective = cfg.get("objective")
     if objective:
-        if objective not in metrics:
-            raise UserError(f"objective '{objective}' is not a metric of this task; "
-                            f"known: {', '.join(sorted(metrics))}")
-        if sweep_job_label() is not None:          # a sweeper chooses by what main.py returns
-            require_choosing_objective(str(objective), metrics)
+        job = sweep_job_label()
+        try:
+            if objective not in metrics:
+                raise UserError(f"objective '{objective}' is not a metric of this task; "
+                                f"known: {', '.join(sorted(metrics))}")
+            if job is not None:          # a sweeper chooses by what main.py returns
+                require_choosing_objective(str(objective), metrics)
+        except UserError:
+            if job is not None:          # the sweep's later jobs of this task are refused before they run
+                remember_refused_objective(str(cfg.task_name), str(objective), job)
+            raise
         return float(metrics[objective])
     return None
 

@@ -8,6 +8,11 @@ the rest; when the sweep is over Hydra raises the first failure and ``main.py`` 
 summary line and exits with status 2. A sweep in which every job failed leaves no sweep
 directory behind (nothing but Hydra's ``multirun.yaml`` was written).
 
+A sweep's objective that a job's finished run refuses (not one of the task's metrics, or a test
+figure where the task reports validation figures) is refused for the sweep's later jobs of the same
+task before they run: one line each naming the job that found it, no folder, no hours spent on runs
+whose value the sweeper could not take.
+
 The record of failed jobs is per process: with the default (sequential) launcher it lists
 every failed job; with a parallel launcher (joblib) the jobs run in worker processes, so the
 summary names the first failure Hydra reports and the workers print their own lines.
@@ -19,7 +24,7 @@ import contextlib
 import shutil
 import sys
 from pathlib import Path
-from typing import Iterator, List, Optional
+from typing import Dict, Iterator, List, Optional, Tuple
 
 from l3d_app.errors import UserError
 
@@ -31,6 +36,7 @@ class SweepJobFailed(UserError):
 _failed: List[str] = []
 _failed_overrides: List[List[str]] = []
 _sweep_dirs: List[Path] = []
+_refused_objectives: Dict[Tuple[str, str], str] = {}
 
 
 def sweep_job_label() -> Optional[str]:
@@ -57,6 +63,19 @@ def record_failed_job(line: str) -> SweepJobFailed:
     _failed.append(line)
     _failed_overrides.append(list(HydraConfig.get().overrides.task))
     return SweepJobFailed(line)
+
+
+def remember_refused_objective(task: str, objective: str, job: str) -> None:
+    """Note that ``job`` (a :func:`sweep_job_label`) of this process ran ``task`` and then had its
+    ``objective`` refused (not a metric of the task, or a test figure): the sweep's later jobs of the
+    same task would run to the same refusal."""
+    _refused_objectives.setdefault((str(task), str(objective)), job.split(" (", 1)[0])
+
+
+def refused_objective(task: str, objective: str) -> Optional[str]:
+    """The earlier job of this process (``"sweep job #N"``) whose run of ``task`` had ``objective``
+    refused, or None: a later job of the sweep is then refused before it runs, not after."""
+    return _refused_objectives.get((str(task), str(objective)))
 
 
 def failed_jobs() -> List[str]:

@@ -104,6 +104,22 @@ def test_cli_sweep_refuses_a_test_figure_as_objective(tmp_path):
     assert out.returncode == 0, out.stderr
 
 
+def test_a_sweep_refuses_a_refused_objective_before_its_later_jobs_run(tmp_path):
+    """Job #0 runs and has its objective refused; jobs #1 and #2 (the same task) are refused before they
+    run: one line each naming job #0, no folder; the summary counts all three."""
+    out = main_py("-m", "task=fit_point", "num_points=300,301,302", "iters=4", "eval_every=2", "image_size=16",
+                  "num_frames=2", "tensorboard=false", "objective=chamferr", f"hydra.sweep.dir={tmp_path}")
+    assert out.returncode == 2, out.stderr
+    errors = [line for line in out.stderr.splitlines() if line.startswith("l3d_app: error:")]
+    assert "objective 'chamferr' is not a metric of this task" in errors[0], errors
+    for job, line in zip((1, 2), errors[1:3]):
+        assert line.startswith(f"l3d_app: error: sweep job #{job} "), errors
+        assert line.endswith("objective 'chamferr' was refused after sweep job #0 of this sweep ran fit_point "
+                             "(its line above says why): this job is not run"), errors
+    assert errors[3].startswith("l3d_app: error: 3 sweep jobs stopped on bad input (#0, #1, #2"), errors
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["0", "multirun.yaml"] and "Traceback" not in out.stderr
+
+
 def test_a_sweep_objective_is_a_validation_figure_or_a_cost():
     """precision has no val_ twin in fit_point's metrics and is still a test figure; seconds is a cost."""
     from l3d_app.app import require_choosing_objective
