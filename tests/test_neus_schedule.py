@@ -140,3 +140,28 @@ def test_the_refused_knobs_shipped_values_are_the_configs(compose):
     cfg = compose("task=volsdf")
     for key, shipped in {**VOLSDF_ONLY, **NEUS_ONLY}.items():
         assert cfg.get(key) == shipped, key
+
+
+def test_a_loaded_annealed_state_renders_with_its_last_s():
+    """An annealed run's checkpoint holds its last ``s`` (log_s): a fresh module of the same config loading
+    it must use that ``s`` (its optical depths equal the saved module's), not the configured start."""
+    from l3d_app.render.neus import NeuSDensity
+    trained = NeuSDensity(s=3.0, mode="anneal", s_end=300.0, anneal_fraction=0.5)
+    trained.schedule(1000, 1000)
+    loaded = NeuSDensity(s=3.0, mode="anneal", s_end=300.0, anneal_fraction=0.5)
+    assert loaded.s == pytest.approx(3.0)
+    loaded.load_state_dict(trained.state_dict())
+    assert loaded.s == pytest.approx(300.0, rel=1e-6) and loaded.stats()["s"] == pytest.approx(300.0, rel=1e-6)
+    f = torch.linspace(0.05, -0.05, 11, dtype=torch.float64)
+    t = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
+    rays = torch.zeros(11, dtype=torch.long)
+    torch.testing.assert_close(loaded.optical_depth(f, t, t + 0.1, rays), trained.optical_depth(f, t, t + 0.1, rays))
+    fixed = NeuSDensity(s=64.0)
+    fixed.load_state_dict(NeuSDensity(s=64.0).state_dict())
+    assert fixed.s == pytest.approx(64.0)                   # a fixed s stays itself
+    learnt = NeuSDensity(s=5.0, mode="learnable")
+    with torch.no_grad():
+        learnt.log_s.fill_(math.log(40.0))
+    fresh = NeuSDensity(s=5.0, mode="learnable")
+    fresh.load_state_dict(learnt.state_dict())
+    assert float(fresh.s.detach()) == pytest.approx(40.0)

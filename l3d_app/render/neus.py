@@ -104,6 +104,15 @@ class NeuSDensity(torch.nn.Module):
         self.s_end = float(s_end) if s_end is not None else float(s)
         self.anneal_fraction = float(anneal_fraction)
         self.fixed_s = None if mode == "learnable" else float(s)
+        self.register_load_state_dict_post_hook(NeuSDensity._s_from_loaded_state)
+
+    @staticmethod
+    def _s_from_loaded_state(module: "NeuSDensity", _incompatible) -> None:
+        """After ``load_state_dict`` the state's ``log_s`` is the ``s`` in use (an annealed run's checkpoint:
+        its last ``s``), not the configured start: a loaded run renders as it was trained (render_path,
+        ``resume=true`` of a finished run)."""
+        if module.fixed_s is not None:
+            module.fixed_s = float(torch.exp(module.log_s))
 
     @property
     def s(self):
