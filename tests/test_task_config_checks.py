@@ -40,6 +40,11 @@ def test_nonnegative_accepts_zero_and_positive_and_positive_rejects_zero():
     ("volsdf", "ncc.weight=-1", "ncc.weight must be a number >= 0"),
     ("volsdf", "ncc.until=0", "ncc.until must be null or lie in"),
     ("volsdf", "ncc.weight=0.5 pixel_jitter=true", "ncc.weight > 0 needs pixel_jitter=false"),
+    ("volsdf", "beta=-0.1", "beta must be > 0"),                           # used to blame beta_min, after the data
+    ("volsdf", "beta_end=0", "beta_end must be > 0"),
+    ("volsdf", "beta_mode=foo", "density mode must be anneal, learnable or fixed"),
+    ("volsdf", "density=neus s=-1", "s must be > 0"),
+    ("volsdf", "density=neus s_mode=anneal s_end=0", "s mode anneal needs s_end > 0"),
     ("svr_train", "lr_floor=-1", "lr_floor must be a number >= 0"),          # used to train with a negative LR at the end
     ("svr_train", "error_max=0", "error_max must be a positive number"),
     ("svr_train", "eval_view=-1", "eval_view must be a number >= 0"),

@@ -241,6 +241,9 @@ class VolSDFDensity(LaplaceDensity):
                  quadrature: str = "left", along_ray: bool = False, along_ray_floor: float = 0.1):
         if mode not in ("anneal", "learnable", "fixed"):
             raise UserError(f"density mode must be anneal, learnable or fixed, got {mode!r}")
+        for key, value in (("beta", beta), ("beta_end", beta_end)):
+            if not float(value) > 0:
+                raise UserError(f"{key} must be > 0 (world units), got {value}")
         if not 0 <= float(beta_min) < min(float(beta), float(beta_end)):
             raise UserError(f"beta_min must be in [0, min(beta, beta_end)), got {beta_min} "
                              f"(beta={beta}, beta_end={beta_end})")

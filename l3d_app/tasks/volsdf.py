@@ -159,10 +159,11 @@ def volsdf(cfg, ctx) -> dict:
     if bool(cfg.density.get("along_ray", False)) and not hasattr(MODELS.get(str(cfg.model.name)), "sdf_rgb_grad"):
         raise UserError(f"density_along_ray needs a field with an exact gradient at evaluation (model=sdf_grid_field), "
                         f"got model={cfg.model.name}")
+    dens = DENSITIES.build(cfg.density)     # its knobs are checked before the data is read
     data = DATASETS.build(cfg.data).to(ctx.device)
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
-    dens = DENSITIES.build(cfg.density).to(ctx.device)
+    dens = dens.to(ctx.device)
     if int(cfg.pretrain_steps) > 0 and not (bool(cfg.resume) and (ctx.out_dir / "checkpoint.pt").exists()):
         err = pretrain_field(model, float(cfg.model.radius if "radius" in cfg.model else cfg.model.sdf_net.radius),
                              box, int(cfg.pretrain_steps), generator=ctx.generator)
