@@ -76,6 +76,24 @@ def test_blender_field_of_view_outside_0_pi(tmp_path, fov):
         blender(str(tmp_path))
 
 
+@pytest.mark.parametrize("change, needle", [
+    (lambda m: {**m, "camera_angle_x": "wide"}, "camera_angle_x must be a number \\(radians\\), got 'wide'"),
+    (lambda m: {**m, "camera_angle_x": None}, "camera_angle_x must be a number"),
+    (lambda m: {**m, "frames": {"0": m["frames"][0]}}, "frames must be a list, got dict"),
+    (lambda m: {**m, "frames": ["x.png"]}, "frame 0 must be an object with file_path and transform_matrix, got str"),
+    (lambda m: {**m, "frames": [{**m["frames"][0], "file_path": 7}]}, "frame 0 file_path must be a string, got 7"),
+    (lambda m: [m], "expected a JSON object with camera_angle_x and frames, got list"),
+])
+def test_blender_malformed_json_names_the_file_and_the_key(tmp_path, change, needle):
+    """Wrong JSON types are one line naming the file and the key (they used to end in a bare
+    ValueError or TypeError from float() or Path())"""
+    write_blender(tmp_path)
+    meta = json.loads((tmp_path / "transforms_train.json").read_text())
+    (tmp_path / "transforms_train.json").write_text(json.dumps(change(meta)))
+    with pytest.raises(UserError, match=f"transforms_train.json: {needle}"):
+        blender(str(tmp_path))
+
+
 def test_blender_ragged_matrix_names_the_frame(tmp_path):
     write_blender(tmp_path)
     meta = json.loads((tmp_path / "transforms_train.json").read_text())
