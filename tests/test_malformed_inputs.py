@@ -37,6 +37,21 @@ def test_nerfstudio_top_level_list_and_zero_image_size(tmp_path):
         nerfstudio(_ns(tmp_path / "b", meta))
 
 
+@pytest.mark.parametrize("change, needle", [
+    ({"fl_x": "ten"}, "frame images/f.png: fl_x must be a number, got 'ten'"),
+    ({"k1": [0.1]}, "frame images/f.png: k1 must be a number, got \\[0.1\\]"),
+    ({"frames": ["images/f.png"]}, "frame 0 must be an object with file_path and transform_matrix, got str"),
+    ({"frames": [{"file_path": 3, "transform_matrix": np.eye(4).tolist()}]}, "frame 0 file_path must be a string, got 3"),
+])
+def test_nerfstudio_wrong_json_types_name_the_file_and_key(tmp_path, change, needle):
+    """Wrong JSON types are one line naming the file, the frame and the key (they used to end in a bare
+    ValueError from float() or a TypeError from sorting the frames)."""
+    frame = {"file_path": "images/f.png", "transform_matrix": np.eye(4).tolist()}
+    meta = {"fl_x": 10.0, "fl_y": 10.0, "cx": 8.0, "cy": 8.0, "w": 16, "h": 16, "frames": [frame], **change}
+    with pytest.raises(UserError, match=f"transforms.json: {needle}"):
+        nerfstudio(_ns(tmp_path / "a", meta))
+
+
 @pytest.mark.parametrize("width,params,problem", [
     (0, [10.0, 10.0, 8.0, 8.0], "image size must be positive"),
     (16, [float("nan"), 10.0, 8.0, 8.0], "finite with positive focal lengths"),
