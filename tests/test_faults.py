@@ -110,3 +110,17 @@ def test_a_resumed_runs_timings_cover_the_whole_run(compose, tmp_path, monkeypat
     if "rays_per_second" in whole:
         steps = whole["rays_per_second"] * whole["train_seconds"] / 64
         assert steps == pytest.approx(whole["iters"], rel=1e-3), steps
+
+
+def test_resuming_a_finished_neus_anneal_run_gives_back_its_figures(compose, tmp_path):
+    """resume=true on a finished volsdf run with an annealed NeuS density runs no step and evaluates the
+    loaded field again: with the checkpoint's last s (not the configured start) its figures are the run's
+    own (before the fix it evaluated with s = 3.0 and reported other figures)."""
+    args = (*RESUMED_RATES["volsdf"], "density=neus", "s=3.0", "s_mode=anneal", "s_end=100", "ncc.weight=0",
+            "tensorboard=false", f"data.cache_dir={tmp_path / 'c'}")
+    run_task(compose(*args), out_dir=tmp_path)
+    first = read(tmp_path)
+    run_task(compose(*args, "resume=true"), out_dir=tmp_path)
+    again = read(tmp_path)
+    assert first["s_final"] == pytest.approx(100.0, rel=1e-5) and again["s_final"] == pytest.approx(100.0, rel=1e-5)
+    assert again["psnr"] == pytest.approx(first["psnr"], abs=1e-3) and again["val_psnr"] == pytest.approx(first["val_psnr"], abs=1e-3)
