@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from l3d_app.data.array_files import load_array_file, numeric_array
+from l3d_app.data.json_frames import check_frame_entries, json_number
 from l3d_app.data.nerf_views import MultiViewData, background_rgb, carve_val, scene_box_tensor
 from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
 from l3d_app.errors import UserError
@@ -115,22 +116,15 @@ def blender(root: str = None, background="white", downscale: int = 1,
         for key in ("camera_angle_x", "frames"):
             if key not in meta:
                 raise UserError(f"{path} has no '{key}' key")
-        fov = _field_of_view(meta["camera_angle_x"], path)      # before any image is read
-        if not isinstance(meta["frames"], list):
-            raise UserError(f"{path}: frames must be a list, got {type(meta['frames']).__name__}")
-        frames = meta["frames"][: int(max_views)] if int(max_views) > 0 else meta["frames"]
+        fov = json_number(meta["camera_angle_x"], f"{path}: camera_angle_x")      # before any image is read
+        if not 0.0 < fov < math.pi:                    # also false for NaN
+            raise UserError(f"{path}: camera_angle_x must be a field of view in (0, pi) radians, got {fov}")
+        frames = check_frame_entries(meta["frames"], path)
+        frames = frames[: int(max_views)] if int(max_views) > 0 else frames
         if not frames:
             raise UserError(f"{path} lists no frames")
         c2w, imgs = [], []
         for i, fr in enumerate(frames):
-            if not isinstance(fr, dict):
-                raise UserError(f"{path}: frame {i} must be an object with file_path and transform_matrix, "
-                                f"got {type(fr).__name__}")
-            for key in ("file_path", "transform_matrix"):
-                if key not in fr:
-                    raise UserError(f"{path}: frame {i} has no '{key}' key")
-            if not isinstance(fr["file_path"], str):
-                raise UserError(f"{path}: frame {i} file_path must be a string, got {fr['file_path']!r}")
             file = folder / Path(fr["file_path"])
             if file.suffix == "":
                 file = file.with_suffix(".png")
@@ -174,17 +168,6 @@ def blender(root: str = None, background="white", downscale: int = 1,
                          bg, box, name=f"blender:{folder.name}", up=torch.tensor([0.0, 0.0, 1.0]), mesh=mesh,
                          masks=masks)
     return data if device is None else data.to(device)
-
-
-def _field_of_view(value, path: Path) -> float:
-    """``camera_angle_x`` of ``path`` as a float in (0, pi) radians, else a UserError naming the file."""
-    try:
-        fov = float(value)
-    except (TypeError, ValueError):
-        raise UserError(f"{path}: camera_angle_x must be a number (radians), got {value!r}") from None
-    if not 0.0 < fov < math.pi:                    # also false for NaN
-        raise UserError(f"{path}: camera_angle_x must be a field of view in (0, pi) radians, got {fov}")
-    return fov
 
 
 @DATASETS.register("truck")

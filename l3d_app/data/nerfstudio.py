@@ -29,6 +29,7 @@ import torch
 
 from l3d_app.data.captures import (border_background, camera_spread, image_files, load_images,
                                    normalize_scene, scene_box, split_by_name)
+from l3d_app.data.json_frames import check_frame_entries, json_number
 from l3d_app.data.nerf_views import MultiViewData, background_rgb, disjoint_splits
 from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
 from l3d_app.errors import UserError
@@ -39,14 +40,6 @@ from l3d_app.runtime.paths import resolve_path
 INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
-
-
-def _number(value, key: str, path: Path, frame: str) -> float:
-    """``value`` of ``key`` (a frame's or the shared intrinsics) as a float, else a UserError naming both."""
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        raise UserError(f"{path}: frame {frame}: {key} must be a number, got {value!r}") from None
 
 
 def _norm(path: str) -> str:
@@ -90,16 +83,7 @@ def nerfstudio(root: str = None, transforms: str = "transforms.json", downscale:
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
         raise UserError(f"{path} lists no frames")
-    for i, fr in enumerate(frames):
-        if not isinstance(fr, dict):
-            raise UserError(f"{path}: frame {i} must be an object with file_path and transform_matrix, "
-                            f"got {type(fr).__name__}")
-        for key in ("file_path", "transform_matrix"):
-            if key not in fr:
-                raise UserError(f"{path}: frame {i} has no '{key}' key")
-        if not isinstance(fr["file_path"], str):
-            raise UserError(f"{path}: frame {i} file_path must be a string, got {fr['file_path']!r}")
-    frames = sorted(frames, key=lambda fr: fr["file_path"])
+    frames = sorted(check_frame_entries(frames, path), key=lambda fr: fr["file_path"])
     if int(max_views) > 0:
         frames = frames[: int(max_views)]
     names = [fr["file_path"] for fr in frames]
@@ -114,8 +98,8 @@ def nerfstudio(root: str = None, transforms: str = "transforms.json", downscale:
         missing = [k for k in INTRINSICS if get(k) is None]
         if missing:
             raise UserError(f"{path}: frame {names[i]} has no '{missing[0]}' (neither per frame nor shared)")
-        vals = [_number(get(k), k, path, names[i]) for k in INTRINSICS]
-        d = [_number(get(k, 0.0), k, path, names[i]) for k in DISTORTION]
+        vals = [json_number(get(k), f"{path}: frame {names[i]}: {k}") for k in INTRINSICS]
+        d = [json_number(get(k, 0.0), f"{path}: frame {names[i]}: {k}") for k in DISTORTION]
         if not np.isfinite(vals + d).all() or vals[0] <= 0 or vals[1] <= 0:
             raise UserError(f"{path}: frame {names[i]}: intrinsics must be finite with positive focal lengths")
         if int(vals[4]) < 1 or int(vals[5]) < 1:
