@@ -114,18 +114,18 @@ def test_volsdf_only_knobs_are_refused_with_neus(compose, override):
     cfg = compose("task=volsdf", "density=neus", override, "data=blender", "data.root=/no/such/folder")
     with pytest.raises(UserError, match="needs density=volsdf"):
         TASKS.get("volsdf")(cfg, None)
-    cfg = compose("task=volsdf", override, "data=blender", "data.root=/no/such/folder")
+    cfg = compose("task=volsdf", "density=volsdf", override, "data=blender", "data.root=/no/such/folder")
     with pytest.raises(UserError, match="/no/such/folder"):      # accepted with VolSDF: stops at the data
         TASKS.get("volsdf")(cfg, None)
 
 
 @pytest.mark.parametrize("override", ["s=200", "s_mode=learnable", "s_end=500"])
 def test_neus_only_knobs_are_refused_with_volsdf(compose, override):
-    """``s=200`` under the default VolSDF density would be ignored: refused, naming density=neus."""
+    """``s=200`` under VolSDF would be ignored: refused, naming density=neus."""
     import l3d_app.tasks  # noqa: F401
     from l3d_app.errors import UserError
     from l3d_app.registry import TASKS
-    cfg = compose("task=volsdf", override, "data=blender", "data.root=/no/such/folder")
+    cfg = compose("task=volsdf", "density=volsdf", override, "data=blender", "data.root=/no/such/folder")
     with pytest.raises(UserError, match="needs density=neus, got density=volsdf"):
         TASKS.get("volsdf")(cfg, None)
     cfg = compose("task=volsdf", "density=neus", override, "data=blender", "data.root=/no/such/folder")
@@ -165,3 +165,20 @@ def test_a_loaded_annealed_state_renders_with_its_last_s():
     fresh = NeuSDensity(s=5.0, mode="learnable")
     fresh.load_state_dict(learnt.state_dict())
     assert float(fresh.s.detach()) == pytest.approx(40.0)
+
+
+@pytest.mark.parametrize("override,accepted", [("beta=0.1", True), ("beta_mode=fixed", True), ("beta_end=0.002", True),
+                                               ("s=200", False), ("s_mode=learnable", False), ("quadrature=linear", False),
+                                               ("alpha=50", False), ("beta_min=0.0005", False),
+                                               ("density_along_ray=true", False)])
+def test_density_auto_takes_the_shared_width_knobs_and_refuses_one_densitys_own(compose, override, accepted):
+    """Under the default ``density=auto`` beta / beta_mode / beta_end drive both densities (NeuS: s = 1 / beta);
+    a knob only one density reads would hold for one of the two: refused before the data is read."""
+    import l3d_app.tasks  # noqa: F401
+    from l3d_app.errors import UserError
+    from l3d_app.registry import TASKS
+    cfg = compose("task=volsdf", override, "data=blender", "data.root=/no/such/folder")
+    assert cfg.density.name == "auto"
+    match = "/no/such/folder" if accepted else "got density=auto .density=auto picks NeuS or VolSDF"
+    with pytest.raises(UserError, match=match):
+        TASKS.get("volsdf")(cfg, None)

@@ -157,6 +157,8 @@ def test_render_path_on_a_gs_train_run_matches_the_model(compose, tmp_path):
     ("volsdf", ["iters=30", "eval_every=30", "supersample=1", "pretrain_steps=50", "gif_frames=0", "free_space.steps=0"]),
     ("volsdf", ["iters=30", "eval_every=30", "supersample=1", "pretrain_steps=50", "gif_frames=0", "free_space.steps=0",
                 "density=neus", "s=3.0", "s_mode=anneal", "s_end=100"]),    # the loaded s is the run's last, not s_start
+    ("volsdf", ["iters=30", "eval_every=30", "supersample=1", "pretrain_steps=50", "gif_frames=0", "free_space.steps=0",
+                "beta=0.33", "beta_end=0.01", "data.elevation_range=[-60,60]"]),   # density=auto picks NeuS here
 ])
 def test_render_path_of_a_field_run_reproduces_its_test_psnr(compose, tmp_path, task, extra):
     """render_path of a train_nerf / volsdf run, along a camera_path.json holding the run's test camera,
@@ -172,8 +174,12 @@ def test_render_path_of_a_field_run_reproduces_its_test_psnr(compose, tmp_path, 
     run_task(cfg, out_dir=run)
     (run / ".hydra").mkdir()
     (run / ".hydra" / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
-    psnr_task = json.loads((run / "metrics.json").read_text())["psnr"]
-    data = nerf_builtin(image_size=24, n_train=12, n_val=1, n_test=1, antialias=1, cache_dir=str(tmp_path / "cache"))
+    metrics = json.loads((run / "metrics.json").read_text())
+    psnr_task = metrics["psnr"]
+    if "data.elevation_range=[-60,60]" in extra:     # density=auto, cameras from -60 to 60 degrees: half below, NeuS
+        assert metrics["density"] == "neus" and metrics["s_final"] == pytest.approx(100.0, rel=1e-3)
+    data = nerf_builtin(image_size=24, n_train=12, n_val=1, n_test=1, antialias=1, cache_dir=str(tmp_path / "cache"),
+                        elevation_range=tuple(cfg.data.elevation_range))
     test = int(data.test[0])
     write_camera_path(tmp_path / "test_cam.json", data.cameras[[test, test]])
     rp = compose("task=render_path", f"checkpoint={run}", "path=camera_path", f"camera_path={tmp_path / 'test_cam.json'}",

@@ -106,7 +106,7 @@ def test_volsdf_short_run_improves_psnr_and_writes_everything(compose, tmp_path)
     cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=120", "eval_every=40",
                   "batch_rays=256", "lr=0.005", "pretrain_steps=50", "gif_frames=2", "mesh_resolution=32",
                   "eval_points=2000", "mesh_formats=[obj,glb]")
-    assert (cfg.beta, cfg.alpha, cfg.beta_mode, cfg.density.name) == (0.3, None, "anneal", "volsdf")
+    assert (cfg.beta, cfg.alpha, cfg.beta_mode, cfg.density.name) == (0.3, None, "anneal", "auto")
     # 120 steps: the default start (0.3, translucent, chosen for 1500-step runs) has barely begun
     # its anneal by step 120 (15.45 -> 15.57 dB); the pipeline's floor is checked from 0.1
     cfg.beta = 0.1
@@ -121,6 +121,8 @@ def test_volsdf_short_run_improves_psnr_and_writes_everything(compose, tmp_path)
     assert m["history"][-1]["psnr"] == pytest.approx(m["val_psnr"], abs=1e-3)
     assert len(hist) == 3 and hist[-1] > hist[0] + 0.25 and hist[-1] > 14.5, hist
     assert np.isfinite(m["chamfer"]) and 0 <= m["f1"] <= 1
+    # density=auto: 16 of the 100 built-in training cameras lie below the scene's centre: under a quarter, VolSDF
+    assert m["density"] == "volsdf" and m["cameras_below_fraction"] == pytest.approx(0.16, abs=0.02)
     assert (tmp_path / "run" / "before_after.png").exists() and m["before_val_psnr"] < m["val_psnr"]
     assert 0 < m["fine_samples_per_ray"] <= cfg.n_fine and m["samples_per_ray"] <= cfg.n_coarse + cfg.n_fine
     diag = _true_mesh_diagonal()

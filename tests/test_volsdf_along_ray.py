@@ -120,7 +120,7 @@ def test_without_the_gradient_or_with_a_bad_floor_it_says_so():
 
 def test_the_task_refuses_a_field_without_an_exact_gradient(compose, tmp_path):
     from l3d_app.app import run_task
-    cfg = compose("task=volsdf", "model=sdf_field", "density_along_ray=true", "iters=1",
+    cfg = compose("task=volsdf", "density=volsdf", "model=sdf_field", "density_along_ray=true", "iters=1",
                   f"data.cache_dir={tmp_path / 'cache'}")
     with pytest.raises(UserError, match="density_along_ray needs a field with an exact gradient"):
         run_task(cfg, out_dir=tmp_path / "run")

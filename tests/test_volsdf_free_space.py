@@ -133,17 +133,15 @@ def test_free_space_weight_fades_linearly_to_zero_at_until():
     assert [free_space_fade(p, 0.5) for p in (0.0, 0.25, 0.5, 0.9)] == [1.0, 0.5, 0.0, 0.0]
 
 
-def test_auto_steps_turn_the_stage_on_for_volsdf_only(compose):
+def test_auto_steps_turn_the_stage_on_for_either_density(compose):
     from l3d_app.tasks.free_space_common import check_free_space_config, resolve_free_space
     cfg = compose("task=volsdf")
     assert cfg.free_space.steps == "auto"
     check_free_space_config(cfg.free_space)
-    assert resolve_free_space(cfg.free_space, "volsdf").steps == cfg.free_space.auto_steps == 600
-    assert resolve_free_space(cfg.free_space, "neus").steps == 0
+    assert resolve_free_space(cfg.free_space).steps == cfg.free_space.auto_steps == 600
     assert cfg.free_space.steps == "auto"                  # the task's config is not changed
     fixed = compose("task=volsdf", "free_space.steps=7")
-    assert resolve_free_space(fixed.free_space, "volsdf").steps == 7
-    assert resolve_free_space(fixed.free_space, "neus").steps == 7
+    assert resolve_free_space(fixed.free_space).steps == 7
 
 
 @pytest.mark.parametrize("value", ["often", -1, True])

@@ -57,14 +57,14 @@ def check_free_space_config(cfg) -> None:
         raise UserError(f"free_space.opacity must lie in (0, 1] (an accumulated opacity), got {cfg.opacity}")
 
 
-def resolve_free_space(cfg, density: str):
+def resolve_free_space(cfg):
     """A copy of ``cfg`` (= ``free_space``, checked) with ``steps`` a number: ``auto`` gives ``auto_steps``
-    with ``density`` ``volsdf`` and 0 (the stage off) with any other density (``neus``): the stage and its
-    default occupancy loss were chosen with VolSDF's Laplace density only (docs/measured/volsdf.md)."""
+    with either density (the stage was chosen with VolSDF's Laplace density; NeuS without it kept the
+    mound over ``ground``'s objects: docs/measured/volsdf.md)."""
     from omegaconf import OmegaConf
     out = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
     if out.steps == "auto":
-        out.steps = int(out.auto_steps) if str(density) == "volsdf" else 0
+        out.steps = int(out.auto_steps)
     return out
 
 

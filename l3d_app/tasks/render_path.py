@@ -33,6 +33,7 @@ from l3d_app.geometry.camera_paths import (interpolate_cameras, orbit, read_came
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
+from l3d_app.render.density_choice import choose_density
 from l3d_app.runtime.config_values import config_floats, config_words
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.media import save_gif, to_uint8
@@ -93,7 +94,7 @@ def _volsdf(conf, state, data, device, chunk) -> Render:
     box = data.scene_box.tolist()
     model = MODELS.build(conf.model, scene_box=box).to(device).eval()
     model.load_state_dict(state["modules"]["field"])
-    dens = DENSITIES.build(conf.density).to(device)
+    dens = DENSITIES.build(choose_density(conf.density, data)[0]).to(device)   # density=auto: as the run chose
     dens.load_state_dict(state["modules"]["density"])
     sampler, background = _sampler(conf, state, box, device), _background(state, data, device)
     # as volsdf does before its test views: the SDF cache is refreshed from the final field (the

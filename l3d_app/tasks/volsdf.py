@@ -1,7 +1,8 @@
 """volsdf: a neural SDF + colour network trained from posed images by SDF volume rendering.
 
-``python main.py task=volsdf beta=0.1`` (VolSDF, ``alpha``/``beta`` at the top level) or
-``density=neus s=64`` (NeuS). Pieces:
+``python main.py task=volsdf beta=0.1`` (``density=auto``, default: NeuS where a quarter or more of the
+training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.render.density_choice`;
+``alpha``/``beta`` at the top level), ``density=volsdf`` or ``density=neus s=64``. Pieces:
 
 * model (``model=sdf_grid_field``, default): :class:`~l3d_app.models.sdf_grid.SDFGridField`,
   a multi-resolution grid (table near zero) + small MLP initialised to a sphere of
@@ -13,7 +14,8 @@
   ``beta`` is the initial value: ``beta_mode=anneal`` (default) takes it geometrically to
   ``beta_end`` over ``anneal_fraction`` of the steps, ``beta_mode=learnable`` trains it with
   the field (floor ``beta_min``), ``beta_mode=fixed`` keeps it. ``alpha=null`` (default) ties
-  ``alpha = 1/beta`` (VolSDF), a number fixes it. NeuS: ``density=neus`` with fixed ``s``.
+  ``alpha = 1/beta`` (VolSDF), a number fixes it. NeuS: ``density=neus`` with fixed ``s``; under
+  ``density=auto`` NeuS takes ``s = 1/beta`` and the same schedule.
   Why ``beta_end`` is small: a ray that passes a convex surface at distance ``h`` (curvature
   radius ``R``) accumulates optical depth ``exp(-h/beta) sqrt(pi R / (2 beta))`` (alpha = 1/beta),
   so silhouettes appear ``beta ln(sqrt(pi R / (2 beta)) / ln 2)`` OUTSIDE the zero level set and
@@ -42,7 +44,7 @@
   (:class:`~l3d_app.losses.patch_consistency.PatchConsistency`); ``ncc.weight`` x (1 - NCC) / 2, falling
   linearly to 0 at ``ncc.until`` of the steps (patches assume surfaces that look alike from nearby views:
   kept to the end it hurt a glossy development scene; docs/measured/volsdf.md).
-* known free space (``free_space.steps``: ``auto`` = 600 steps with density=volsdf, off with neus): a short radiance-field fit first
+* known free space (``free_space.steps``: ``auto`` = 600 steps with either density): a short radiance-field fit first
   (:mod:`~l3d_app.tasks.free_space_common`) marks, on each training ray, the stretch before its
   opacity reaches ``free_space.opacity`` (less ``free_space.margin``, and less ``free_space.margin_beta``
   x the current beta); each step adds
@@ -96,6 +98,7 @@ from l3d_app.models.level_schedule import LevelSchedule
 from l3d_app.models.sdf_gradients import field_with_gradient
 from l3d_app.models.sdf_grid import pretrain_field
 from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
+from l3d_app.render.density_choice import candidate_configs, choose_density
 from l3d_app.render.densities import transition_width
 from l3d_app.render.evaluation import render_views
 from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
@@ -126,17 +129,27 @@ NEUS_ONLY = {"s": 64.0, "s_mode": "fixed", "s_end": 200.0}
 """NeuS's own top-level knobs and their shipped values (``anneal_fraction`` and ``lr_beta`` serve both densities)."""
 
 
+AUTO_SHARED = ("beta", "beta_mode", "beta_end")
+"""VolSDF's knobs that ``density=auto`` also gives NeuS (``s = 1 / beta``, ``s_end = 1 / beta_end``, the mode)."""
+
+
 def _refuse_the_other_densitys_knobs(cfg) -> None:
     """A knob of one density set away from its shipped value while the other density runs would be
-    silently ignored (``density=neus beta=0.1``): one line instead, naming the density it needs."""
+    silently ignored (``density=neus beta=0.1``): one line instead, naming the density it needs. Under
+    ``density=auto`` only the shared width knobs (:data:`AUTO_SHARED`) may be set: the others would hold
+    for one of the two densities only."""
     name = str(cfg.density.name)
     for needs, knobs in (("volsdf", VOLSDF_ONLY), ("neus", NEUS_ONLY)):
         if name == needs:
             continue
         for key, shipped in knobs.items():
             value = cfg.get(key, shipped)
-            if value != shipped:
-                hint = " (NeuS's transition width is 1 / s: s, s_mode, s_end)" if needs == "volsdf" else ""
+            if value != shipped and not (name == "auto" and key in AUTO_SHARED):
+                if name == "auto":
+                    hint = (" (density=auto picks NeuS or VolSDF from the training cameras"
+                            + (" and gives NeuS s = 1 / beta" if needs == "neus" else "") + ")")
+                else:
+                    hint = " (NeuS's transition width is 1 / s: s, s_mode, s_end)" if needs == "volsdf" else ""
                 raise UserError(f"{key}={value} needs density={needs}, got density={name}{hint}")
 
 
@@ -151,7 +164,7 @@ def volsdf(cfg, ctx) -> dict:
     require_mesh_formats(cfg)
     check_free_space_config(cfg.free_space)
     _check_ncc(cfg)
-    fs = resolve_free_space(cfg.free_space, cfg.density.name)     # steps=auto: on with density=volsdf only
+    fs = resolve_free_space(cfg.free_space)     # steps=auto: auto_steps
     if int(fs.steps) > 0 and str(fs.loss) == "density" and str(cfg.density.name) != "volsdf":
         raise UserError(f"free_space.loss=density needs density=volsdf (a density per point), got density="
                         f"{cfg.density.name}: use free_space.loss=occupancy or outside")
@@ -159,8 +172,13 @@ def volsdf(cfg, ctx) -> dict:
     if bool(cfg.density.get("along_ray", False)) and not hasattr(MODELS.get(str(cfg.model.name)), "sdf_rgb_grad"):
         raise UserError(f"density_along_ray needs a field with an exact gradient at evaluation (model=sdf_grid_field), "
                         f"got model={cfg.model.name}")
-    dens = DENSITIES.build(cfg.density)     # its knobs are checked before the data is read
+    for candidate in candidate_configs(cfg.density):     # the knobs are checked before the data is read
+        DENSITIES.build(candidate)
     data = DATASETS.build(cfg.data).to(ctx.device)
+    density_cfg, below = choose_density(cfg.density, data)
+    dens = DENSITIES.build(density_cfg)
+    ctx.logger.text("density", f"{density_cfg.name} ({100 * below:.0f}% of the training cameras below the scene's "
+                               f"centre; density={cfg.density.name})")
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
     dens = dens.to(ctx.device)
@@ -333,7 +351,8 @@ def volsdf(cfg, ctx) -> dict:
     steps = max(stats["steps"], 1)
     metrics.update({
         **{k: v for k, v in result.val_metrics().items() if k in ("val_psnr", "val_ssim")},
-        "density": str(cfg.density.name), **{f"{k}_final": round(v, 6) for k, v in dens.stats().items()},
+        "density": str(density_cfg.name), "cameras_below_fraction": round(below, 4),
+        **{f"{k}_final": round(v, 6) for k, v in dens.stats().items()},
         "beta": float(cfg.beta), "iters": result.step, "n_params": sum(p.numel() for p in model.parameters()),
         "train_seconds": round(stats["train_seconds"], 4), "mesh_seconds": round(ctx.stopwatch.stages["mesh"], 4),
         "gif_seconds": round(ctx.stopwatch.stages.get("gifs", 0.0), 4), "gif_frames": frames,

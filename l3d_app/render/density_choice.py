@@ -1,0 +1,79 @@
+"""``density=auto``: NeuS for a capture seen from below as well as above, VolSDF for one seen from above.
+
+Issue 16, measured on the development scenes (docs/measured/volsdf.md): on ``dev`` (a third of its
+training cameras below the scene) NeuS halved VolSDF's surface error; on ``ground`` (every camera
+above a striped slab) it raised the slab and lost 1.2 dB. The rule reads only the training cameras:
+a camera is *below* when its centre lies under the horizontal plane through the scene box's centre
+(horizontal: perpendicular to the data's up axis, :func:`~l3d_app.render.turntable.data_up`), and
+NeuS is chosen when at least ``below_fraction`` of them are (0.25, written before any run: half of a
+truly all-round capture's 50 %).
+
+Under ``auto`` one transition width drives both densities: NeuS gets ``s = 1 / beta``,
+``s_end = 1 / beta_end`` and the same schedule (``mode``, ``anneal_fraction``), as the measured
+candidate did (nothing tuned).
+"""
+
+from __future__ import annotations
+
+from typing import Tuple
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from l3d_app.errors import UserError
+from l3d_app.render.turntable import data_up
+
+VOLSDF_KEYS = ("beta", "mode", "beta_end", "anneal_fraction", "beta_min", "alpha", "quadrature", "along_ray",
+               "along_ray_floor")
+"""The keys of ``conf/density/volsdf.yaml`` an ``auto`` config carries (the same interpolations)."""
+
+
+def below_fraction(centres: torch.Tensor, up: torch.Tensor, centre: torch.Tensor) -> float:
+    """Fraction in [0, 1] of camera ``centres`` (N, 3) strictly below the plane through ``centre`` (3,)
+    perpendicular to ``up`` (3,, any length); 0 for no cameras."""
+    if centres.numel() == 0:
+        return 0.0
+    up = up.to(centres) / up.to(centres).norm()
+    return float((((centres - centre.to(centres)) @ up) < 0).double().mean())
+
+
+def volsdf_config(cfg) -> DictConfig:
+    """The ``density=volsdf`` config an ``auto`` config (``cfg``) stands for."""
+    return OmegaConf.create({"name": "volsdf", **{k: cfg[k] for k in VOLSDF_KEYS}})
+
+
+def neus_config(cfg) -> DictConfig:
+    """The ``density=neus`` config an ``auto`` config stands for: ``s = 1 / beta``, ``s_end = 1 / beta_end``,
+    the same schedule mode and fraction (a mode NeuS lacks is refused by :class:`~l3d_app.render.neus.NeuSDensity`)."""
+    for key in ("beta", "beta_end"):     # VolSDF's own wording (render/densities.py)
+        value = cfg[key]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+            raise UserError(f"{key} must be > 0 (world units), got {value}")
+    return OmegaConf.create({"name": "neus", "s": 1.0 / cfg.beta, "mode": str(cfg.mode), "s_end": 1.0 / cfg.beta_end,
+                             "anneal_fraction": cfg.anneal_fraction})
+
+
+def candidate_configs(cfg) -> Tuple[DictConfig, ...]:
+    """Every density config ``cfg`` (``cfg.density``) may become: itself, or for ``auto`` both densities'
+    (so that each one's knobs are checked before the data is read)."""
+    if str(cfg.name) != "auto":
+        return (cfg,)
+    fraction = cfg.get("below_fraction")
+    if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or not 0 < fraction <= 1:
+        raise UserError(f"density.below_fraction must lie in (0, 1], got {fraction!r}")
+    return volsdf_config(cfg), neus_config(cfg)
+
+
+def choose_density(cfg, data) -> Tuple[DictConfig, float]:
+    """(the density config to build, the fraction of ``data``'s training cameras below its scene's centre).
+
+    ``cfg`` is ``cfg.density``; anything but ``auto`` comes back unchanged. ``data``: a dataset with
+    ``cameras``, ``train`` (indices), ``scene_box`` (2, 3) and optionally ``up``."""
+    centres = data.cameras[data.train].centers().detach().to("cpu", torch.float64)
+    box = torch.as_tensor(data.scene_box, dtype=torch.float64).cpu()
+    fraction = below_fraction(centres, data_up(data).double(), box.mean(dim=0))
+    if str(cfg.name) != "auto":
+        return cfg, fraction
+    candidate_configs(cfg)
+    chosen = neus_config(cfg) if fraction >= float(cfg.below_fraction) else volsdf_config(cfg)
+    return chosen, fraction
