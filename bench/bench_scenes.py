@@ -172,6 +172,10 @@ def role_of(row: dict) -> str:
     return role if role and row["role"] == "held out" else row["role"]
 
 
+DENSITY_NAMES = {"neus": "NeuS", "volsdf": "VolSDF"}
+"""How the table names the density a volsdf row ran with (``density=auto`` picks it from the cameras)."""
+
+
 def table(rows: List[dict]) -> str:
     head = ("| scene | role | method | test PSNR | test SSIM | seconds | size | chamfer % diag (whole / observed) "
             "| F1@0.02 obs | F1@0.05 obs | phantom % | measured (commit, date, load) |\n"
@@ -180,7 +184,8 @@ def table(rows: List[dict]) -> str:
     for r in rows:
         size = r.get("n_gaussians") or r.get("n_params")
         cham = "" if r.get("chamfer_pct") is None else f"{r['chamfer_pct']:.2f} / {r['chamfer_obs_pct']:.2f}"
-        method = r["method"] + (f" ({' '.join(r['overrides'])}: not the defaults)" if r.get("overrides") else "")
+        method = r["method"] + (f" ({DENSITY_NAMES.get(r['density'], r['density'])})" if r.get("density") else "")
+        method += f" ({' '.join(r['overrides'])}: not the defaults)" if r.get("overrides") else ""
         lines.append(f"| {r['scene']} | {role_of(r)} | {method} | {fmt(r.get('psnr'), '.2f')} | "
                      f"{fmt(r.get('ssim'), '.3f')} | {fmt(r.get('seconds'), '.0f')} | {size or ''} | {cham} | "
                      f"{fmt(r.get('f1_02_obs'), '.3f')} | {fmt(r.get('f1_05_obs'), '.3f')} | {fmt(r.get('phantom_pct'), '.1f')} | "
@@ -244,6 +249,8 @@ def main() -> None:
             if m is not None:
                 row.update(m["measured_at"])
                 row.update({k: m.get(k) for k in ("psnr", "ssim", "seconds", "n_params", "n_gaussians", "iters")})
+                if m.get("density"):       # volsdf: the density its cameras chose (density=auto)
+                    row["density"] = m["density"]
                 mesh = find_mesh(args.out / scene.name / method)
                 if mesh is not None:
                     row.update(mesh_scores(mesh, scene))

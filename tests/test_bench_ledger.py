@@ -64,3 +64,10 @@ def test_a_scene_a_methods_choice_looked_at_is_not_called_held_out_for_it(tmp_pa
 def test_a_row_run_with_overrides_says_it_is_not_the_defaults():
     row = {**_row("above", "gs_train", 30.0, "eee"), "overrides": ["iters=10"]}
     assert "| gs_train (iters=10: not the defaults) |" in _bench().table([row])
+
+
+def test_a_volsdf_row_names_the_density_its_cameras_chose():
+    bench = _bench()
+    assert "| volsdf (NeuS) |" in bench.table([{**_row("thin", "volsdf", 33.0, "fff"), "density": "neus"}])
+    assert "| volsdf (VolSDF) |" in bench.table([{**_row("above", "volsdf", 31.0, "fff"), "density": "volsdf"}])
+    assert "| volsdf |" in bench.table([_row("above", "volsdf", 31.0, "ggg")])     # rows measured before the choice
