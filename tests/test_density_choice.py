@@ -38,7 +38,7 @@ def test_auto_picks_neus_from_a_quarter_below_and_volsdf_under_it(compose):
     under = _data([-20.0] + [30.0] * 4, up=[0.0, 1.0, 0.0])            # 1 of 5: 20 %
     for data, name, fraction in ((above, "volsdf", 0.0), (quarter, "neus", 0.25), (under, "volsdf", 0.2)):
         chosen, below = choose_density(cfg, data)
-        assert (chosen.name, below) == (name, pytest.approx(fraction)), (name, below)
+        assert (chosen["name"], below) == (name, pytest.approx(fraction)), (name, below)
 
 
 def test_the_choice_reads_the_datas_up_axis_and_the_boxs_centre(compose):
@@ -49,17 +49,17 @@ def test_the_choice_reads_the_datas_up_axis_and_the_boxs_centre(compose):
     assert choose_density(cfg, ring)[1] == pytest.approx(0.5)
     # cameras 20 degrees up about the origin (y = 1.37) lie below a box centred at y = 2.5: all below, NeuS
     chosen, below = choose_density(cfg, _data([20.0] * 6, up=[0.0, 1.0, 0.0], box=((-1, 1.5, -1), (1, 3.5, 1))))
-    assert (chosen.name, below) == ("neus", 1.0)
+    assert (chosen["name"], below) == ("neus", 1.0)
 
 
 def test_neus_under_auto_takes_its_width_and_schedule_from_volsdfs_knobs(compose):
     volsdf, neus = candidate_configs(compose("task=volsdf", "beta=0.25", "beta_end=0.004").density)
-    assert (volsdf.name, volsdf.beta, volsdf.beta_end, volsdf.mode) == ("volsdf", 0.25, 0.004, "anneal")
-    assert (neus.name, neus.mode, neus.anneal_fraction) == ("neus", "anneal", 0.8)
-    assert neus.s == pytest.approx(4.0) and neus.s_end == pytest.approx(250.0)
+    assert [volsdf[k] for k in ("name", "beta", "beta_end", "mode")] == ["volsdf", 0.25, 0.004, "anneal"]
+    assert [neus[k] for k in ("name", "mode", "anneal_fraction")] == ["neus", "anneal", 0.8]
+    assert neus["s"] == pytest.approx(4.0) and neus["s_end"] == pytest.approx(250.0)
     fixed = compose("task=volsdf", "density=volsdf")
     assert candidate_configs(fixed.density) == (fixed.density,)            # an explicit density is kept as is
-    assert choose_density(fixed.density, _data([-40.0] * 4, up=[0, 1, 0]))[0].name == "volsdf"
+    assert choose_density(fixed.density, _data([-40.0] * 4, up=[0, 1, 0]))[0]["name"] == "volsdf"
 
 
 @pytest.mark.parametrize("fraction", [0, -0.1, 1.5, "half", True])

@@ -15,10 +15,9 @@ candidate did (nothing tuned).
 
 from __future__ import annotations
 
-from typing import Tuple
+from typing import Any, Dict, Mapping, Tuple
 
 import torch
-from omegaconf import DictConfig, OmegaConf
 
 from l3d_app.errors import UserError
 from l3d_app.render.turntable import data_up
@@ -37,26 +36,26 @@ def below_fraction(centres: torch.Tensor, up: torch.Tensor, centre: torch.Tensor
     return float((((centres - centre.to(centres)) @ up) < 0).double().mean())
 
 
-def volsdf_config(cfg) -> DictConfig:
-    """The ``density=volsdf`` config an ``auto`` config (``cfg``) stands for."""
-    return OmegaConf.create({"name": "volsdf", **{k: cfg[k] for k in VOLSDF_KEYS}})
+def volsdf_config(cfg: Mapping) -> Dict[str, Any]:
+    """The ``density=volsdf`` config an ``auto`` config (``cfg``, a mapping) stands for."""
+    return {"name": "volsdf", **{k: cfg[k] for k in VOLSDF_KEYS}}
 
 
-def neus_config(cfg) -> DictConfig:
+def neus_config(cfg: Mapping) -> Dict[str, Any]:
     """The ``density=neus`` config an ``auto`` config stands for: ``s = 1 / beta``, ``s_end = 1 / beta_end``,
     the same schedule mode and fraction (a mode NeuS lacks is refused by :class:`~l3d_app.render.neus.NeuSDensity`)."""
     for key in ("beta", "beta_end"):     # VolSDF's own wording (render/densities.py)
         value = cfg[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
             raise UserError(f"{key} must be > 0 (world units), got {value}")
-    return OmegaConf.create({"name": "neus", "s": 1.0 / cfg.beta, "mode": str(cfg.mode), "s_end": 1.0 / cfg.beta_end,
-                             "anneal_fraction": cfg.anneal_fraction})
+    return {"name": "neus", "s": 1.0 / cfg["beta"], "mode": str(cfg["mode"]), "s_end": 1.0 / cfg["beta_end"],
+            "anneal_fraction": cfg["anneal_fraction"]}
 
 
-def candidate_configs(cfg) -> Tuple[DictConfig, ...]:
+def candidate_configs(cfg: Mapping) -> Tuple[Mapping, ...]:
     """Every density config ``cfg`` (``cfg.density``) may become: itself, or for ``auto`` both densities'
     (so that each one's knobs are checked before the data is read)."""
-    if str(cfg.name) != "auto":
+    if str(cfg["name"]) != "auto":
         return (cfg,)
     fraction = cfg.get("below_fraction")
     if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or not 0 < fraction <= 1:
@@ -64,16 +63,16 @@ def candidate_configs(cfg) -> Tuple[DictConfig, ...]:
     return volsdf_config(cfg), neus_config(cfg)
 
 
-def choose_density(cfg, data) -> Tuple[DictConfig, float]:
+def choose_density(cfg: Mapping, data) -> Tuple[Mapping, float]:
     """(the density config to build, the fraction of ``data``'s training cameras below its scene's centre).
 
-    ``cfg`` is ``cfg.density``; anything but ``auto`` comes back unchanged. ``data``: a dataset with
+    ``cfg`` is ``cfg.density`` (any mapping); anything but ``auto`` comes back unchanged. ``data``: a dataset with
     ``cameras``, ``train`` (indices), ``scene_box`` (2, 3) and optionally ``up``."""
     centres = data.cameras[data.train].centers().detach().to("cpu", torch.float64)
     box = torch.as_tensor(data.scene_box, dtype=torch.float64).cpu()
     fraction = below_fraction(centres, data_up(data).double(), box.mean(dim=0))
-    if str(cfg.name) != "auto":
+    if str(cfg["name"]) != "auto":
         return cfg, fraction
     candidate_configs(cfg)
-    chosen = neus_config(cfg) if fraction >= float(cfg.below_fraction) else volsdf_config(cfg)
+    chosen = neus_config(cfg) if fraction >= float(cfg["below_fraction"]) else volsdf_config(cfg)
     return chosen, fraction

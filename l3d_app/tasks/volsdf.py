@@ -177,7 +177,7 @@ def volsdf(cfg, ctx) -> dict:
     data = DATASETS.build(cfg.data).to(ctx.device)
     density_cfg, below = choose_density(cfg.density, data)
     dens = DENSITIES.build(density_cfg)
-    ctx.logger.text("density", f"{density_cfg.name} ({100 * below:.0f}% of the training cameras below the scene's "
+    ctx.logger.text("density", f"{density_cfg['name']} ({100 * below:.0f}% of the training cameras below the scene's "
                                f"centre; density={cfg.density.name})")
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
@@ -351,7 +351,7 @@ def volsdf(cfg, ctx) -> dict:
     steps = max(stats["steps"], 1)
     metrics.update({
         **{k: v for k, v in result.val_metrics().items() if k in ("val_psnr", "val_ssim")},
-        "density": str(density_cfg.name), "cameras_below_fraction": round(below, 4),
+        "density": str(density_cfg["name"]), "cameras_below_fraction": round(below, 4),
         **{f"{k}_final": round(v, 6) for k, v in dens.stats().items()},
         "beta": float(cfg.beta), "iters": result.step, "n_params": sum(p.numel() for p in model.parameters()),
         "train_seconds": round(stats["train_seconds"], 4), "mesh_seconds": round(ctx.stopwatch.stages["mesh"], 4),
