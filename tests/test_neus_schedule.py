@@ -105,32 +105,27 @@ def test_a_neus_silhouette_lies_on_the_zero_level_set(s):
         assert opacity == pytest.approx(1 / (1 + math.exp(s * h)), abs=2e-3)
 
 
-@pytest.mark.parametrize("override", ["density_along_ray=true", "quadrature=linear", "alpha=50", "beta=0.1",
-                                      "beta_mode=learnable", "beta_end=0.002", "beta_min=0.0005"])
-def test_volsdf_only_knobs_are_refused_with_neus(compose, override):
+def _stops_with(compose, match, *overrides):
+    """volsdf on a missing folder with ``overrides`` raises a UserError matching ``match`` (a refused knob) or
+    naming the folder (the knobs accepted: the run got as far as the data)."""
     import l3d_app.tasks  # noqa: F401
     from l3d_app.errors import UserError
     from l3d_app.registry import TASKS
-    cfg = compose("task=volsdf", "density=neus", override, "data=blender", "data.root=/no/such/folder")
-    with pytest.raises(UserError, match="needs density=volsdf"):
-        TASKS.get("volsdf")(cfg, None)
-    cfg = compose("task=volsdf", "density=volsdf", override, "data=blender", "data.root=/no/such/folder")
-    with pytest.raises(UserError, match="/no/such/folder"):      # accepted with VolSDF: stops at the data
+    cfg = compose("task=volsdf", *overrides, "data=blender", "data.root=/no/such/folder")
+    with pytest.raises(UserError, match=match):
         TASKS.get("volsdf")(cfg, None)
 
 
-@pytest.mark.parametrize("override", ["s=200", "s_mode=learnable", "s_end=500"])
-def test_neus_only_knobs_are_refused_with_volsdf(compose, override):
-    """``s=200`` under VolSDF would be ignored: refused, naming density=neus."""
-    import l3d_app.tasks  # noqa: F401
-    from l3d_app.errors import UserError
-    from l3d_app.registry import TASKS
-    cfg = compose("task=volsdf", "density=volsdf", override, "data=blender", "data.root=/no/such/folder")
-    with pytest.raises(UserError, match="needs density=neus, got density=volsdf"):
-        TASKS.get("volsdf")(cfg, None)
-    cfg = compose("task=volsdf", "density=neus", override, "data=blender", "data.root=/no/such/folder")
-    with pytest.raises(UserError, match="/no/such/folder"):      # accepted with NeuS: stops at the data
-        TASKS.get("volsdf")(cfg, None)
+@pytest.mark.parametrize("override, owner", [
+    *[(o, "volsdf") for o in ("density_along_ray=true", "quadrature=linear", "alpha=50", "beta=0.1",
+                              "beta_mode=learnable", "beta_end=0.002", "beta_min=0.0005")],
+    *[(o, "neus") for o in ("s=200", "s_mode=learnable", "s_end=500")]])
+def test_a_densitys_own_knob_is_refused_under_the_other(compose, override, owner):
+    """``density=neus beta=0.1`` or ``density=volsdf s=200`` would be ignored: refused, naming the density the
+    knob needs; under that density the same knob is accepted (the run stops at the missing data)."""
+    other = "neus" if owner == "volsdf" else "volsdf"
+    _stops_with(compose, f"needs density={owner}, got density={other}", f"density={other}", override)
+    _stops_with(compose, "/no/such/folder", f"density={owner}", override)
 
 
 def test_the_refused_knobs_shipped_values_are_the_configs(compose):
@@ -174,11 +169,6 @@ def test_a_loaded_annealed_state_renders_with_its_last_s():
 def test_density_auto_takes_the_shared_width_knobs_and_refuses_one_densitys_own(compose, override, accepted):
     """Under the default ``density=auto`` beta / beta_mode / beta_end drive both densities (NeuS: s = 1 / beta);
     a knob only one density reads would hold for one of the two: refused before the data is read."""
-    import l3d_app.tasks  # noqa: F401
-    from l3d_app.errors import UserError
-    from l3d_app.registry import TASKS
-    cfg = compose("task=volsdf", override, "data=blender", "data.root=/no/such/folder")
-    assert cfg.density.name == "auto"
-    match = "/no/such/folder" if accepted else "got density=auto .density=auto picks NeuS or VolSDF"
-    with pytest.raises(UserError, match=match):
-        TASKS.get("volsdf")(cfg, None)
+    assert compose("task=volsdf").density.name == "auto"
+    _stops_with(compose, "/no/such/folder" if accepted else "got density=auto .density=auto picks NeuS or VolSDF",
+                override)
