@@ -43,10 +43,12 @@ def test_auto_picks_neus_from_a_quarter_below_and_volsdf_under_it(compose):
 
 def test_the_choice_reads_the_datas_up_axis_and_the_boxs_centre(compose):
     cfg = compose("task=volsdf").density
-    ring = _data([0.0] * 8, up=[0.0, 0.0, 1.0])     # a horizontal ring about +Y: 4 of its 8 cameras at z < 0
-    assert choose_density(cfg, ring)[1] == pytest.approx(0.5)
-    ring.up = [0.0, 0.0, -1.0]
-    assert choose_density(cfg, ring)[1] == pytest.approx(0.5)
+    ring = _data([20.0] * 8, up=[0.0, 1.0, 0.0])    # 20 degrees above the XZ plane: none below with +Y up ...
+    chosen, below = choose_density(cfg, ring)
+    assert (chosen["name"], below) == ("volsdf", 0.0)
+    ring.up = [0.0, 0.0, 1.0]                        # ... 4 of the 8 at z < 0 with +Z up: NeuS
+    chosen, below = choose_density(cfg, ring)
+    assert (chosen["name"], below) == ("neus", pytest.approx(0.5))
     # cameras 20 degrees up about the origin (y = 1.37) lie below a box centred at y = 2.5: all below, NeuS
     chosen, below = choose_density(cfg, _data([20.0] * 6, up=[0.0, 1.0, 0.0], box=((-1, 1.5, -1), (1, 3.5, 1))))
     assert (chosen["name"], below) == ("neus", 1.0)
