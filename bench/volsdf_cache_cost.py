@@ -9,25 +9,22 @@ pays about this / N seconds per training step for its cache.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
+
+from volsdf_run import load_sdf_field, run_scene_parser
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("run", type=Path)
-    ap.add_argument("scene", type=Path)
+    ap = run_scene_parser(__doc__)
     ap.add_argument("--resolution", type=int, default=64)
     ap.add_argument("--repeats", type=int, default=8)
-    ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     import torch
-    from volsdf_run import load_sdf_field
     from l3d_app.render.sdf_cache import SDFGridCache
 
     torch.set_num_threads(args.threads)

@@ -11,25 +11,22 @@ development scenes: it tells whether the mesh's resolution or the field limits t
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
+
+from volsdf_run import load_sdf_field, run_scene_parser
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("run", type=Path)
-    ap.add_argument("scene", type=Path)
+    ap = run_scene_parser(__doc__)
     ap.add_argument("--resolutions", type=int, nargs="+", default=[128, 192, 256])
-    ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     import torch
     from bench_scenes import mesh_scores
-    from volsdf_run import load_sdf_field
     from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
     from l3d_app.tasks.field_common import cull_to_training_views
 

@@ -2,8 +2,20 @@
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 from typing import Iterable, Tuple
+
+
+def run_scene_parser(doc: str) -> argparse.ArgumentParser:
+    """An argument parser for a script over one finished volsdf run: ``run`` (its folder), ``scene`` (the
+    bench scene's folder with its true ``mesh.ply``) and ``--threads`` (2); the description is ``doc``'s
+    first paragraph."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("--threads", type=int, default=2)
+    return ap
 
 
 def load_sdf_field(run: Path, scene: Path, also_needs: Iterable[str] = ()) -> Tuple[object, object, object]:
