@@ -333,3 +333,25 @@ def test_evaluation_sample_counts_apply_without_gradients_only():
 def test_sdf_cache_cell_size_is_the_widest_vertex_spacing():
     cache = SDFGridCache(((-1.0, -2.0, 0.0), (1.0, 2.0, 0.5)), resolution=5)
     assert cache.cell_size == pytest.approx(1.0)        # y: 4 / (5 - 1)
+
+
+def test_cache_refresh_schedule_every_then_late_every():
+    """The cache re-reads the field at step 0 and every ``every`` steps before ``late_from``, then every
+    ``late_every`` steps (a written-out list, not the rule); without ``late_every`` every ``every`` steps
+    throughout; bad values are a UserError."""
+    sph = Sphere(0.5)
+    read = []
+
+    def refreshed_steps(**kw):
+        read.clear()
+        est = SDFCacheProposal(BOX, n_coarse=8, n_fine=2, resolution=4, **kw)
+        for step in range(0, 90):
+            est.update(step, SimpleNamespace(sdf=lambda p, step=step: (read.append(step), sph(p))[1]))
+        return sorted(set(read))
+
+    assert refreshed_steps(every=8, late_every=32, late_from=25) == [0, 8, 16, 24, 32, 64]
+    assert refreshed_steps(every=8) == list(range(0, 90, 8))
+    assert refreshed_steps(every=8, late_every=32, late_from=0) == [0, 32, 64]
+    for bad in (dict(late_every=0), dict(late_from=-1), dict(every=0)):
+        with pytest.raises(UserError):
+            SDFCacheProposal(BOX, **bad)

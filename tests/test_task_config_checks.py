@@ -28,6 +28,8 @@ def test_nonnegative_accepts_zero_and_positive_and_positive_rejects_zero():
     ("volsdf", "eikonal_points=-1", "eikonal_points must be a number >= 0"),  # used to end in a RuntimeError
     ("volsdf", "mesh_resolution=1", "mesh_resolution must be an integer >= 2"),  # used to fail after training
     ("volsdf", "level_every=-2", "level_every must be a number >= 0"),
+    ("volsdf", "cache_late_every=0", "cache_late_every must be a positive number"),
+    ("volsdf", "cache_late_from=-1", "cache_late_from must be a number >= 0"),
     ("volsdf", "free_space.opacity=1.5", "free_space.opacity must lie in"),
     ("volsdf", "free_space.margin=-0.1", "free_space.margin must be a number >= 0"),
     ("volsdf", "free_space.margin_beta=-1", "free_space.margin_beta must be a number >= 0"),

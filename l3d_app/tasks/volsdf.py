@@ -25,7 +25,8 @@ training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.ren
   :func:`~l3d_app.render.densities.distance_along_ray`): the transition in ``t`` is the same at every angle,
   so the silhouettes no longer sit outside the zero level set (option; docs/measured/volsdf.md).
 * sampling only near the surface: a trilinear :class:`~l3d_app.render.sdf_volume.SDFGridCache`
-  of the SDF (``cache_resolution``^3, refreshed every ``cache_every`` steps, no grad) gives
+  of the SDF (``cache_resolution``^3, refreshed every ``cache_every`` steps, from ``cache_late_from`` on every
+  ``cache_late_every`` when set; no grad) gives
   ``n_coarse`` look-ups per ray whose VolSDF weights place ``n_fine`` field samples at the
   zero level set (:func:`~l3d_app.render.sdf_volume.render_sdf_rays`); metrics report both
   counts (``samples_per_ray``, ``fine_samples_per_ray``). Evaluation renders put 8 of them at the
@@ -160,6 +161,9 @@ def volsdf(cfg, ctx) -> dict:
     require_nonnegative(cfg, "w_free", "free_softness", "eikonal_points", "cache_resolution", "pretrain_steps",
                         "warmup_steps", "level_every")     # the shared run knobs: app.run_task (require_run_keys)
     require_positive(cfg, "cache_every")
+    require_nonnegative(cfg, "cache_late_from")
+    if cfg.get("cache_late_every") is not None:
+        require_positive(cfg, "cache_late_every")
     require_mesh_resolution(cfg)
     require_mesh_formats(cfg)
     check_free_space_config(cfg.free_space)

@@ -24,7 +24,8 @@ class SDFCacheProposal(Estimator):
     """Coarse pass on a cached SDF, fine samples near its zero level set (VolSDF / NeuS).
 
     1. ``n_coarse`` stratified look-ups per ray of an :class:`SDFGridCache` (``resolution``^3
-       trilinear copy of ``field.sdf``, refreshed every ``every`` steps by :meth:`update`; with
+       trilinear copy of ``field.sdf``, refreshed every ``every`` steps by :meth:`update`, from step
+       ``late_from`` on every ``late_every`` steps when that is set (the field moves fastest early); with
        ``resolution`` 0 the field's own SDF is evaluated, no grad);
     2. their weights under the run's density (``sampling(..., density=...)``, a ``DENSITIES``
        module, its smoothing widened to half the coarse spacing so a thin surface between two
@@ -64,7 +65,8 @@ class SDFCacheProposal(Estimator):
                  every: int = 32, padding: float = 1e-3, skip_opacity: float = 1e-4, max_segment: float = 4.0,
                  eval_n_coarse: Optional[int] = None, eval_n_fine: Optional[int] = None, anchor: int = 0,
                  anchor_window: Sequence[float] = (-4.0, 3.0), refine_evals: int = 8,
-                 eval_anchor: Optional[int] = None, anchor_when: str = "always"):
+                 eval_anchor: Optional[int] = None, anchor_when: str = "always",
+                 late_every: Optional[int] = None, late_from: int = 0):
         super().__init__(scene_box)
         eval_n_coarse = n_coarse if eval_n_coarse is None else eval_n_coarse
         eval_n_fine = n_fine if eval_n_fine is None else eval_n_fine
@@ -75,8 +77,11 @@ class SDFCacheProposal(Estimator):
                              f"{n_fine}, {eval_n_coarse}, {eval_n_fine}")
         self.eval_n_coarse, self.eval_n_fine = int(eval_n_coarse), int(eval_n_fine)
         self._counts = (int(n_coarse), int(n_fine))
-        if int(every) < 1:
-            raise UserError(f"every must be >= 1, got {every}")
+        if int(every) < 1 or (late_every is not None and int(late_every) < 1) or int(late_from) < 0:
+            raise UserError(f"every and late_every must be >= 1 and late_from >= 0, got {every}, {late_every}, "
+                            f"{late_from}")
+        self.late_every = None if late_every is None else int(late_every)
+        self.late_from = int(late_from)
         if not 0.0 <= float(skip_opacity) < 1.0:
             raise UserError(f"skip_opacity must be in [0, 1), got {skip_opacity}")
         self.n_coarse, self.n_fine, self.every, self.padding = int(n_coarse), int(n_fine), int(every), float(padding)
@@ -100,8 +105,12 @@ class SDFCacheProposal(Estimator):
         self.anchor, self.eval_anchor, self.anchor_window = int(anchor), int(eval_anchor), (lo, hi)
         self.refine_evals, self.anchor_when = int(refine_evals), str(when)
 
+    def refresh_interval(self, step: int) -> int:
+        """Steps between cache refreshes at training ``step``: ``every``, or ``late_every`` from ``late_from`` on."""
+        return self.every if self.late_every is None or step < self.late_from else self.late_every
+
     def _update(self, step: int, field, generator, force: bool) -> None:
-        if self.cache is not None and (force or not self._fresh or step % self.every == 0):
+        if self.cache is not None and (force or not self._fresh or step % self.refresh_interval(step) == 0):
             self.cache.update(field.sdf)
             self._fresh = True
 
