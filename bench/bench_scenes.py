@@ -124,13 +124,19 @@ def find_mesh(run_dir: Path) -> Optional[Path]:
 
 def mesh_scores(mesh_path: Path, scene: Path) -> Dict[str, float]:
     """Whole / observed chamfer (% of diagonal), F1@0.02 and 0.05, phantom share of area."""
+    from l3d_app.geometry.mesh_io import load_mesh
+
+    return scores_of_mesh(load_mesh(str(mesh_path)), scene)
+
+
+def scores_of_mesh(pred, scene: Path) -> Dict[str, float]:
+    """:func:`mesh_scores` of a loaded ``Mesh`` against ``scene``'s true mesh and training cameras."""
     from l3d_app.data.nerf_formats import blender
     from l3d_app.geometry.mesh_io import load_mesh
     from l3d_app.metrics.surface_scores import surface_scores
     from l3d_app.render.rgbd import true_depth_maps
 
     truth = load_mesh(str(scene / "mesh.ply"))
-    pred = load_mesh(str(mesh_path))
     data = blender(root=str(scene), background="white")
     cams = data.cameras[data.train]
     depth = true_depth_maps(truth, cams, scale=4)
