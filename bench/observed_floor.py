@@ -6,8 +6,8 @@ unseen space empty scores on each scene.
 Each scene's TRUE mesh is cut to the faces some training camera sees
 (:func:`l3d_app.render.mesh_visibility.cull_unseen_faces`, the culling volsdf applies to its own meshes
 with ``mesh_cull=true``, here at the surface metrics' depth tolerance 0.01) and scored as a method's mesh
-is (``bench_scenes.scores_of_mesh``): whole-surface chamfer (% of the diagonal), F1@0.05 whole,
-F1@0.02 / 0.05 observed, phantom area (%). The observed scores are ~perfect by construction; the
+is (``bench_scenes.scores_of_mesh``); printed: the true area cut (%), whole-surface chamfer (% of the diagonal),
+F1@0.05 whole, F1@0.02 observed, phantom area (%). The observed scores are ~perfect by construction; the
 whole-surface chamfer is what the unseen truth (a plate's underside, a tray's outer bottom) costs a
 mesh that does not guess it, so no such mesh scores below it. Reads the truth and the cameras only:
 no method runs and nothing is tuned by it (a property of the scene and the metric, as the tables'
