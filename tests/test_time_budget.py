@@ -184,8 +184,8 @@ def test_a_stale_evaluation_price_is_refreshed_before_a_budget_stop(tmp_path):
     # 10 k + 45. Priced at 40 s the loop stops at the first k with 10 k + 45 + 40 x 11 >= 1100: k = 62.
     # That price is 12 steps old (>= max(1, 50 // 5) = 10), so the loop validates again (5 s: 670 s)
     # and re-prices: 670 + 5 x 11 = 725 < 1100 -> on. Then 10 k + 50 + 55 >= 1100 first at k = 100,
-    # where the periodic validation (5 s) is fresh: 1055 + 55 = 1110 -> stop, no further refresh and
-    # no second final validation.
+    # where the periodic validation (5 s) has been measured once: the loop repeats it (5 s, the
+    # step's entry replaced): 1060 + 55 = 1115 -> stop, and no third validation as the final one.
     ctx, trainable, step = setup(tmp_path, budget=1100.0)
     seen = {"extra": 0.0, "steps": []}
 
@@ -202,8 +202,40 @@ def test_a_stale_evaluation_price_is_refreshed_before_a_budget_stop(tmp_path):
         return {"x": 0.0}
     result = train(ctx, trainable, step_fn, iters=1000, eval_fn=eval_fn, eval_every=50, reserve_evals=10.0)
     assert result.budget_stop and result.step == 100
-    assert seen["steps"] == [0, 50, 62, 100]
+    assert seen["steps"] == [0, 50, 62, 100, 100]
     assert [s for s, _ in result.history] == [0, 50, 62, 100]
+
+
+@pytest.mark.parametrize("repeat_cost, stop_step, evals", [(5.0, 80, [50, 50, 80]), (40.0, 50, [50, 50])])
+def test_one_slow_validation_does_not_end_a_run(tmp_path, repeat_cost, stop_step, evals):
+    # steps cost 10 s on the fake clock (the stop test's own step time, read from the real one, is
+    # ~0 here), a validation every 50 steps 5 s (priced so before training: eval_price), 10
+    # evaluations' worth follow the loop, budget 900 s. The step-50 validation takes 40 s (a stall):
+    # 540 + 40 x 11 = 980 >= 900 would stop the run at step 50. The loop validates again first.
+    # A 5 s repeat (the stall passed): the cheaper price, 5 s, counts: 545 + 55 < 900 -> on, until
+    # 10 k + 45 + 55 >= 900 at k = 80, where the step-50 price is 30 >= 10 steps old: a fresh
+    # validation (5 s): 850 + 55 = 905 -> stop. A 40 s repeat (the model is that dear): both
+    # timings say 40 s -> stop at 50, the repeat its final validation (one entry at step 50).
+    ctx, trainable, step = setup(tmp_path, budget=900.0)
+    seen = {"extra": 0.0, "steps": []}
+
+    def step_fn(i):
+        out = step(i)
+        ctx.stopwatch.elapsed += seen["extra"]
+        return out
+
+    def eval_fn(s):
+        cost = (40.0 if s == 50 and s not in seen["steps"] else repeat_cost if s == 50 else 5.0)
+        seen["extra"] += cost
+        ctx.stopwatch.elapsed += cost
+        seen["steps"].append(s)
+        return {"x": float(len(seen["steps"]))}
+    result = train(ctx, trainable, step_fn, iters=1000, eval_fn=eval_fn, eval_every=50, reserve_evals=10.0,
+                   eval_price=5.0)
+    assert result.budget_stop and result.step == stop_step
+    assert seen["steps"] == evals
+    assert [s for s, _ in result.history] == sorted(set(evals))       # a repeat replaces its step's entry
+    assert result.history[0][1]["x"] == 2.0                            # ... with the repeat's figures
 
 
 class _Reserved(Exception):
