@@ -21,14 +21,20 @@ def test_every_optimiser_builds_for_every_task_that_offers_the_group(compose, ta
 
     cfg = compose(f"task={task}", f"optim={optim}")
     params = [torch.nn.Parameter(torch.zeros(3))]
-    opt, _ = build_optimizer(cfg.optim, params, 100)
+    optim_cfg = cfg.optim
+    if task == "volsdf":                    # warmup_steps=auto becomes the density's number, as the task does
+        from l3d_app.tasks.volsdf import optimizer_config
+        optim_cfg = optimizer_config(cfg, "neus")
+        if "warmup_steps" in optim_cfg:
+            assert optim_cfg.warmup_steps == 150 and optimizer_config(cfg, "volsdf").warmup_steps == 50
+    opt, _ = build_optimizer(optim_cfg, params, 100)
     assert opt.param_groups[0]["lr"] > 0
 
 
 @pytest.mark.parametrize("task, optim, expected", [
     ("train_nerf", "adam_step", {"decay": 0.33, "decay_every": 1000}),          # the task's lr_decay knobs
     ("nerf_baseline", "adam_step", {"decay": 0.8, "decay_every": 20000}),
-    ("volsdf", "warmup_cosine", {"warmup_steps": 50, "final_ratio": 0.05}),
+    ("volsdf", "warmup_cosine", {"warmup_steps": "auto", "final_ratio": 0.05}),   # the task resolves auto
     ("volsdf", "adam_cosine", {"final_ratio": 0.05}),
     ("box", "adam_exp", {"lr": 0.02, "final_factor": 0.01}),
     ("neural_sdf", "adam_cosine", {"lr": 0.001, "final_ratio": 0.05}),

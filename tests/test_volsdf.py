@@ -126,6 +126,7 @@ def test_volsdf_short_run_improves_psnr_and_writes_everything(compose, tmp_path)
     assert np.isfinite(m["chamfer"]) and 0 <= m["f1"] <= 1
     # density=auto: 16 of the 100 built-in training cameras lie below the scene's centre: under a quarter, VolSDF
     assert m["density"] == "volsdf" and m["cameras_below_fraction"] == pytest.approx(0.16, abs=0.02)
+    assert m["warmup_steps"] == 50                    # warmup_steps=auto with VolSDF
     assert (tmp_path / "run" / "before_after.png").exists() and m["before_val_psnr"] < m["val_psnr"]
     assert 0 < m["fine_samples_per_ray"] <= cfg.n_fine and m["samples_per_ray"] <= cfg.n_coarse + cfg.n_fine
     diag = _true_mesh_diagonal()
@@ -151,6 +152,7 @@ def test_volsdf_neus_variant_and_knobs_compose(compose, tmp_path):
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     hist = [h["psnr"] for h in m["history"]]
     assert m["density"] == "neus" and np.isfinite(m["psnr"]) and len(hist) == 3
+    assert m["warmup_steps"] == 150                   # warmup_steps=auto with NeuS (a ramp longer than this run)
     assert hist[-1] > hist[0] + 0.25, hist
     from hydra.errors import MissingConfigException
     from l3d_app.registry import DENSITIES
@@ -201,3 +203,14 @@ def test_the_patch_loss_acts_until_its_fraction_of_the_steps(compose, tmp_path):
     assert sorted(rays) == [0, 10] and min(rays.values()) > 0.02      # logged every 10 steps while it acts
     assert all(-1.0 <= v <= 1.0 for v in ncc.values())
     assert 30 in {e.step for e in events.Scalars("train/color_loss")}   # the run went on without it
+
+
+def test_warmup_steps_auto_follows_the_density_and_bad_values_are_refused():
+    from l3d_app.tasks.volsdf import WARMUP_STEPS_AUTO, warmup_steps_for
+
+    assert WARMUP_STEPS_AUTO == {"neus": 150, "volsdf": 50}        # the shipped ramps (docs/measured/volsdf.md)
+    assert warmup_steps_for("auto", "neus") == 150 and warmup_steps_for("auto", "volsdf") == 50
+    assert warmup_steps_for(80, "neus") == 80 and warmup_steps_for(0, "volsdf") == 0   # an integer sets both
+    for bad in (-1, 2.5, "fast", True, None):
+        with pytest.raises(UserError, match="warmup_steps must be auto or an integer >= 0"):
+            warmup_steps_for(bad, "neus")

@@ -37,8 +37,8 @@ training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.ren
   :func:`~l3d_app.losses.free_space.occupied_volume`, or with ``free_softness`` > 0
   :func:`~l3d_app.losses.free_space.occupied_fraction`), through the shared
   :func:`~l3d_app.runtime.training.train` loop (evaluation, checkpoints, ``resume=true``);
-  ``optim=warmup_cosine`` (Adam eps 1e-15, ``warmup_steps`` linear warm-up then cosine decay to
-  ``lr * lr_final_ratio``).
+  ``optim=warmup_cosine`` (Adam eps 1e-15, ``warmup_steps`` linear warm-up, ``auto``: 150 steps with NeuS, 50
+  with VolSDF (:data:`WARMUP_STEPS_AUTO`), then cosine decay to ``lr * lr_final_ratio``).
   ``pixel_jitter=true`` sends each training ray through a random point of its pixel.
 * multi-view patch consistency (``ncc.*``, Geo-NeuS's NCC): each training ray's first zero crossing and
   normal warp its grey patch into the nearest training views
@@ -87,6 +87,7 @@ import time
 from typing import Callable, Dict, Tuple
 
 import torch
+from omegaconf import OmegaConf
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.rays import camera_rays, pixel_axes
@@ -130,6 +131,34 @@ NEUS_ONLY = {"s": 64.0, "s_mode": "fixed", "s_end": 200.0}
 """NeuS's own top-level knobs and their shipped values (``anneal_fraction`` and ``lr_beta`` serve both densities)."""
 
 
+WARMUP_STEPS_AUTO = {"neus": 150, "volsdf": 50}
+"""``warmup_steps=auto``: the learning rate's linear ramp (steps) for the density that runs (after
+``density=auto``). NeuS ramps over 10% of the 1500 default steps: with 50 it lost its surface on the development
+scene ``dev`` in 3 of 9 runs on 2 AVX2 cores (black speckle by step 250), with 150 in none of 4 full runs and 7
+stopped at step 250; VolSDF keeps 50 (150 cost the development scene ``ground`` 0.5 dB and 0.25 points of
+chamfer). docs/measured/volsdf.md."""
+
+
+def warmup_steps_for(value, density: str) -> int:
+    """The warm-up steps of knob ``value`` (``auto`` or an integer >= 0) for ``density`` (``neus`` / ``volsdf``);
+    UserError for anything else."""
+    if value == "auto":
+        return WARMUP_STEPS_AUTO[str(density)]
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise UserError(f"warmup_steps must be auto or an integer >= 0, got {value!r}")
+    return value
+
+
+def optimizer_config(cfg, density: str):
+    """``cfg.optim``, with ``warmup_steps: auto`` (optim=warmup_cosine reads the task's top-level knob) made
+    ``density``'s number of steps."""
+    if cfg.optim.get("warmup_steps") != "auto":
+        return cfg.optim
+    out = OmegaConf.create(OmegaConf.to_container(cfg.optim, resolve=True))
+    out.warmup_steps = warmup_steps_for("auto", density)
+    return out
+
+
 AUTO_SHARED = ("beta", "beta_mode", "beta_end")
 """VolSDF's knobs that ``density=auto`` also gives NeuS (``s = 1 / beta``, ``s_end = 1 / beta_end``, the mode)."""
 
@@ -159,7 +188,8 @@ def volsdf(cfg, ctx) -> dict:
     """Train on the train views, validate on val, test once; surface scores, gifs, mesh, metrics."""
     require_positive(cfg, "iters", "batch_rays", "chunk", "supersample", "val_supersample", "eval_every")
     require_nonnegative(cfg, "w_free", "free_softness", "eikonal_points", "cache_resolution", "pretrain_steps",
-                        "warmup_steps", "level_every")     # the shared run knobs: app.run_task (require_run_keys)
+                        "level_every")     # the shared run knobs: app.run_task (require_run_keys)
+    warmup_steps_for(cfg.warmup_steps, "volsdf")      # auto or an integer >= 0, checked before the data is read
     require_positive(cfg, "cache_every")
     require_nonnegative(cfg, "cache_late_from")
     if cfg.get("cache_late_every") is not None:
@@ -196,7 +226,8 @@ def volsdf(cfg, ctx) -> dict:
     groups = [{"params": list(model.parameters()) + ([background["rgb"]] if background["rgb"].requires_grad else [])},
               {"params": list(dens.parameters()), "lr": float(cfg.lr_beta)}]
     horizon = Horizon(int(cfg.iters))     # where a time budget will stop the run: the schedules end there
-    opt, scheds = build_optimizer(cfg.optim, groups, int(cfg.iters), horizon=horizon)
+    optim_cfg = optimizer_config(cfg, density_cfg["name"])
+    opt, scheds = build_optimizer(optim_cfg, groups, int(cfg.iters), horizon=horizon)
     trainable = Trainable({"field": model, "density": dens, "background": background}, opt,
                           extra={"sampler": sampler, "horizon": horizon}, schedulers=scheds)
 
@@ -358,6 +389,7 @@ def volsdf(cfg, ctx) -> dict:
         "density": str(density_cfg["name"]), "cameras_below_fraction": round(below, 4),
         **{f"{k}_final": round(v, 6) for k, v in dens.stats().items()},
         "beta": float(cfg.beta), "iters": result.step, "n_params": sum(p.numel() for p in model.parameters()),
+        "warmup_steps": int(optim_cfg.get("warmup_steps", 0)),
         "train_seconds": round(stats["train_seconds"], 4), "mesh_seconds": round(ctx.stopwatch.stages["mesh"], 4),
         "gif_seconds": round(ctx.stopwatch.stages.get("gifs", 0.0), 4), "gif_frames": frames,
         "free_space_seconds": round(ctx.stopwatch.stages.get("free_space", 0.0), 4),
