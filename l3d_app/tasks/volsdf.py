@@ -134,8 +134,8 @@ NEUS_ONLY = {"s": 64.0, "s_mode": "fixed", "s_end": 200.0}
 WARMUP_STEPS_AUTO = {"neus": 150, "volsdf": 50}
 """``warmup_steps=auto``: the learning rate's linear ramp (steps) for the density that runs (after
 ``density=auto``). NeuS ramps over 10% of the 1500 default steps: with 50 it lost its surface on the development
-scene ``dev`` in 3 of 9 runs on 2 AVX2 cores (black speckle by step 250), with 150 in none of 4 full runs and 7
-stopped at step 250; VolSDF keeps 50 (150 cost the development scene ``ground`` 0.5 dB and 0.25 points of
+scene ``dev`` in 3 of 9 runs on 2 AVX2 cores (black speckle by step 250), with 150 in none of 5 whole runs and 8
+stopped at or after step 250; VolSDF keeps 50 (150 cost the development scene ``ground`` 0.5 dB and 0.25 points of
 chamfer). docs/measured/volsdf.md."""
 
 
