@@ -177,6 +177,27 @@ def test_a_budget_stop_before_the_first_periodic_validation_keeps_time_for_the_t
     assert result.step == 15 and [s for s, _ in result.history] == [15]
 
 
+def _timed_validations(tmp_path, budget, cost):
+    """The fake-clock loop of :func:`setup` whose validation at step ``s`` takes ``cost(s, steps validated
+    before)`` seconds; every step also carries the validations' seconds so far. The validation returns
+    ``x``: how many validations have run."""
+    ctx, trainable, step = setup(tmp_path, budget=budget)
+    seen = {"extra": 0.0, "steps": []}
+
+    def step_fn(i):
+        out = step(i)
+        ctx.stopwatch.elapsed += seen["extra"]
+        return out
+
+    def eval_fn(s):
+        seconds = cost(s, list(seen["steps"]))
+        seen["extra"] += seconds
+        ctx.stopwatch.elapsed += seconds
+        seen["steps"].append(s)
+        return {"x": float(len(seen["steps"]))}
+    return ctx, trainable, step_fn, eval_fn, seen
+
+
 def test_a_stale_evaluation_price_is_refreshed_before_a_budget_stop(tmp_path):
     # steps cost 10 s; a validation every 50 steps, the first 40 s, later ones 5 s (a fuzzy model
     # renders slower than the sharp one); 10 evaluations' worth follow the loop; budget 1100 s. The
@@ -186,20 +207,8 @@ def test_a_stale_evaluation_price_is_refreshed_before_a_budget_stop(tmp_path):
     # and re-prices: 670 + 5 x 11 = 725 < 1100 -> on. Then 10 k + 50 + 55 >= 1100 first at k = 100,
     # where the periodic validation (5 s) has been measured once: the loop repeats it (5 s, the
     # step's entry replaced): 1060 + 55 = 1115 -> stop, and no third validation as the final one.
-    ctx, trainable, step = setup(tmp_path, budget=1100.0)
-    seen = {"extra": 0.0, "steps": []}
-
-    def step_fn(i):
-        out = step(i)
-        ctx.stopwatch.elapsed += seen["extra"]
-        return out
-
-    def eval_fn(s):
-        cost = 40.0 if s == 50 else 5.0
-        seen["extra"] += cost
-        ctx.stopwatch.elapsed += cost
-        seen["steps"].append(s)
-        return {"x": 0.0}
+    ctx, trainable, step_fn, eval_fn, seen = _timed_validations(tmp_path, 1100.0,
+                                                                lambda s, before: 40.0 if s == 50 else 5.0)
     result = train(ctx, trainable, step_fn, iters=1000, eval_fn=eval_fn, eval_every=50, reserve_evals=10.0)
     assert result.budget_stop and result.step == 100
     assert seen["steps"] == [0, 50, 62, 100, 100]
@@ -216,20 +225,8 @@ def test_one_slow_validation_does_not_end_a_run(tmp_path, repeat_cost, stop_step
     # 10 k + 45 + 55 >= 900 at k = 80, where the step-50 price is 30 >= 10 steps old: a fresh
     # validation (5 s): 850 + 55 = 905 -> stop. A 40 s repeat (the model is that dear): both
     # timings say 40 s -> stop at 50, the repeat its final validation (one entry at step 50).
-    ctx, trainable, step = setup(tmp_path, budget=900.0)
-    seen = {"extra": 0.0, "steps": []}
-
-    def step_fn(i):
-        out = step(i)
-        ctx.stopwatch.elapsed += seen["extra"]
-        return out
-
-    def eval_fn(s):
-        cost = (40.0 if s == 50 and s not in seen["steps"] else repeat_cost if s == 50 else 5.0)
-        seen["extra"] += cost
-        ctx.stopwatch.elapsed += cost
-        seen["steps"].append(s)
-        return {"x": float(len(seen["steps"]))}
+    ctx, trainable, step_fn, eval_fn, seen = _timed_validations(
+        tmp_path, 900.0, lambda s, before: (40.0 if s == 50 and s not in before else repeat_cost if s == 50 else 5.0))
     result = train(ctx, trainable, step_fn, iters=1000, eval_fn=eval_fn, eval_every=50, reserve_evals=10.0,
                    eval_price=5.0)
     assert result.budget_stop and result.step == stop_step
