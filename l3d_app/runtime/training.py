@@ -518,7 +518,7 @@ def _revalidate(ctx, clock: "_LoopClock", eval_fn, done: int, history: Dict[str,
     if same_step:
         history["eval"].pop()
     metrics = clock.timed_eval(lambda: _evaluate(ctx, eval_fn, done, history))
-    if same_step and clock.evals > 1:
+    if same_step:
         clock.last_eval = min(clock.last_eval, first_price)
     return metrics
 
