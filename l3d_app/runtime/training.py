@@ -284,9 +284,9 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
             measures, so the budget holds on any machine and image size. A budget stop rests on a
             price measured twice: before stopping on a validation's price the loop validates again
             (once per validation) and stops only if the price still says so. At the step of that
-            validation the cheaper of the two counts (the same model: a stall only adds time; a
-            volsdf default run once took 23 s for its step-250 validation against 5-7 s in every
-            other run, and stopped at step 250 of 1500 with 230 s of its budget unused); later, or
+            validation the cheaper of the two counts (the same model: a stall only adds time; one
+            volsdf step-250 validation several times slower than in every other run once stopped a
+            run at step 250 of 1500 with 230 s of its budget unused); later, or
             once the price is ``eval_every // 5`` or more steps old, the new one (volsdf's step-250
             validation of a fuzzy surface priced its 256 px test views 2.4x too dear on a slow
             machine).
