@@ -3,6 +3,7 @@ PLY (vertex colours) and GLB (trimesh; vertex colours as COLOR_0)."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Callable, Optional, Sequence, Tuple
 
@@ -10,7 +11,7 @@ import numpy as np
 import torch
 
 from l3d_app.errors import UserError
-from l3d_app.geometry.marching_cubes import sdf_to_mesh
+from l3d_app.geometry.marching_cubes import evaluate_grid, sdf_to_mesh
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.mesh_io import save_mesh
 from l3d_app.runtime.files import atomic_path
@@ -28,9 +29,8 @@ def extract_mesh(level_fn: Callable[[torch.Tensor], torch.Tensor], box: Tuple[Se
     ``color_fn(points (V, 3), outward normals (V, 3)) -> rgb (V, 3)`` colours the vertices
     (e.g. a radiance field looking along ``-normal``); clamped to [0, 1].
     """
-    fn = lambda p: level_fn(p.reshape(-1, 3)).reshape(p.shape[:-1])  # noqa: E731
     try:
-        mesh = sdf_to_mesh(fn, resolution=int(resolution), bounds=(list(box[0]), list(box[1])), level=float(level),
+        mesh = sdf_to_mesh(_on_grid(level_fn), resolution=int(resolution), bounds=(list(box[0]), list(box[1])), level=float(level),
                            colors=None, device=device)
     except UserError:
         return None
@@ -38,6 +38,46 @@ def extract_mesh(level_fn: Callable[[torch.Tensor], torch.Tensor], box: Tuple[Se
         rgb = color_fn(mesh.verts, mesh.vertex_normals()).clamp(0, 1)
         mesh = Mesh(verts=mesh.verts, faces=mesh.faces, vert_colors=rgb)
     return mesh
+
+
+def _on_grid(level_fn: Callable[[torch.Tensor], torch.Tensor]) -> Callable[[torch.Tensor], torch.Tensor]:
+    """``level_fn`` ((N, 3) -> (N,)) on points of any leading shape (..., 3) -> (...)."""
+    return lambda p: level_fn(p.reshape(-1, 3)).reshape(p.shape[:-1])
+
+
+MESH_PRICED_AT = 128     # the marching-cubes resolution a task's mesh seconds (its config) were measured at
+PROBE_RESOLUTION = 64    # the grid timed to price a level function per point: 262,144 points
+
+
+@torch.no_grad()
+def seconds_per_grid_point(level_fn: Callable[[torch.Tensor], torch.Tensor], box, resolution: int = PROBE_RESOLUTION,
+                           device=None) -> float:
+    """Wall seconds per point of ``level_fn`` ((N, 3) -> (N,)) evaluated as :func:`extract_mesh` evaluates
+    it, measured once on a ``resolution``^3 grid over ``box`` ((lo, hi), world units)."""
+    start = time.perf_counter()
+    evaluate_grid(_on_grid(level_fn), list(box[0]), list(box[1]), int(resolution), device=device)
+    return (time.perf_counter() - start) / int(resolution) ** 3
+
+
+def mesh_seconds_at(resolution: int, seconds_at_128: float, seconds_per_point: float) -> float:
+    """Seconds to keep for a mesh step at ``resolution`` whose price at :data:`MESH_PRICED_AT` is
+    ``seconds_at_128`` (a task's config: about twice its measurement): that price plus twice the grid's
+    extra points at ``seconds_per_point`` (twice, like the price itself: the culling and colouring grow
+    with the mesh too; ``docs/measured/time_budget.md``); fewer points, less time; never below 0 s."""
+    extra_points = int(resolution) ** 3 - MESH_PRICED_AT ** 3
+    return max(0.0, float(seconds_at_128) + 2.0 * float(seconds_per_point) * extra_points)
+
+
+def priced_mesh_seconds(resolution: int, seconds_at_128: float, level_fn: Callable[[torch.Tensor], torch.Tensor],
+                        box, time_budget: float, device=None) -> Tuple[float, Optional[float]]:
+    """(seconds a time-budgeted task keeps for its mesh step at ``resolution``, the measured seconds per
+    grid point or None): ``seconds_at_128`` as configured at :data:`MESH_PRICED_AT` or without a time
+    budget (nothing measured), else :func:`mesh_seconds_at` with ``level_fn`` timed by
+    :func:`seconds_per_grid_point`."""
+    if float(time_budget) <= 0 or int(resolution) == MESH_PRICED_AT:
+        return float(seconds_at_128), None
+    per_point = seconds_per_grid_point(level_fn, box, device=device)
+    return mesh_seconds_at(resolution, seconds_at_128, per_point), per_point
 
 
 def save_glb(mesh: Mesh, path) -> Path:

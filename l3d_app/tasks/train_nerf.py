@@ -10,7 +10,8 @@ steps the shared loop evaluates the VALIDATION views (``eval_views`` of them; PS
 a ``pred | truth | error | depth`` picture in TensorBoard); the TEST views are rendered once,
 after training (``psnr``, ``ssim`` in metrics.json; ``val_*`` the last validation).
 ``time_budget`` > 0: wall seconds for the whole task; the loop keeps time for the test views
-(priced at its validations), ``mesh_reserve`` seconds with ``extract_mesh=true`` and the top-level
+(priced at its validations), ``mesh_reserve`` seconds with ``extract_mesh=true`` (at ``mesh_resolution``
+128; another resolution adds the grid's extra points at the density's measured cost) and the top-level
 ``reserve`` (0 unless set); the gif comes last with the
 frames that still fit (:func:`~l3d_app.tasks.field_common.write_turntables`). Outputs: ``turntable.gif`` (colour | depth, orbiting the data's
 up axis), ``test_views.png``, ``metrics.json``; ``extract_mesh=true`` adds ``mesh.<fmt>`` of
@@ -27,7 +28,7 @@ import torch
 
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import DATASETS, MODELS, SAMPLERS, TASKS
-from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
+from l3d_app.render.field_mesh import extract_mesh, priced_mesh_seconds, save_field_mesh
 from l3d_app.render.radiance import render_field_rays
 from l3d_app.render.turntable import color_depth_frames
 from l3d_app.runtime.config_values import config_words
@@ -112,12 +113,20 @@ def train_nerf(cfg, ctx) -> dict:
         before_after.after(picture)
         return {**metrics, **figures(), "images": {"views": picture}}
 
+    mesh_reserve = 0.0     # mesh_reserve is the mesh step's seconds at 128; another resolution: the density timed
+    if bool(cfg.extract_mesh):
+        mesh_reserve, per_point = priced_mesh_seconds(int(cfg.mesh_resolution), float(cfg.mesh_reserve),
+                                                      model.density, box, float(cfg.time_budget), ctx.device)
+        if per_point is not None:
+            ctx.logger.text("reserve", f"{mesh_reserve:.1f} s kept for the mesh at mesh_resolution="
+                                       f"{int(cfg.mesh_resolution)} (mesh_reserve={float(cfg.mesh_reserve):g} s at 128; "
+                                       f"the density costs {1e6 * per_point:.2f} us per grid point, measured)")
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn if len(val) else None,
                        eval_every=int(cfg.eval_every), checkpoint_every=int(cfg.checkpoint_every),
                        resume=bool(cfg.resume), desc="train_nerf", after_step=after_step,
                        time_budget=float(cfg.time_budget),
-                       reserve=float(cfg.reserve) + (float(cfg.mesh_reserve) if bool(cfg.extract_mesh) else 0.0),
+                       reserve=float(cfg.reserve) + mesh_reserve,
                        reserve_evals=evals_after_training(     # the test views (the gif takes what is left)
                            len(val), len(data.test)), eval_price=before_seconds)
     with torch.no_grad():
@@ -139,6 +148,7 @@ def train_nerf(cfg, ctx) -> dict:
                                                                                int(cfg.mesh_resolution))
                 save_field_mesh(mesh, ctx.path("mesh"), config_words(cfg.mesh_formats, "mesh_formats"))
             metrics["mesh_faces"] = 0 if mesh is None else int(mesh.num_faces)
+            metrics["mesh_reserve_seconds"] = round(mesh_reserve, 4)
         metrics["gif_frames"] = write_turntables(cfg, ctx, data,
                                                  {"turntable.gif": color_depth_frames(render_fn, int(cfg.chunk))})
     metrics.update({**{k: v for k, v in result.val_metrics().items() if k in ("val_psnr", "val_ssim")},

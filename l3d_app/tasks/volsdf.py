@@ -62,7 +62,9 @@ training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.ren
 Evaluation: every ``eval_every`` steps on the VALIDATION views (PSNR / SSIM and a
 ``pred | truth | error | depth`` picture in TensorBoard); the TEST views are rendered once at the
 end (``psnr``, ``ssim``; ``val_*`` the last validation). ``time_budget`` > 0: wall seconds
-for the whole task, ``reserve`` of them kept for the mesh and its scores (the test views are
+for the whole task, ``reserve`` of them kept for the mesh and its scores at ``mesh_resolution`` 128 (at
+another resolution the grid's extra points are priced by the SDF's measured cost:
+:func:`~l3d_app.render.field_mesh.priced_mesh_seconds`; the test views are
 reserved from the measured evaluation time; the gifs come last with the frames that still fit,
 :func:`~l3d_app.tasks.field_common.write_turntables`); when the budget stops training before ``iters``,
 the LR, beta anneal and level schedules follow the loop's prediction of its last step
@@ -103,7 +105,7 @@ from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
 from l3d_app.render.density_choice import candidate_configs, choose_density
 from l3d_app.render.densities import transition_width
 from l3d_app.render.evaluation import render_views
-from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
+from l3d_app.render.field_mesh import extract_mesh, priced_mesh_seconds, save_field_mesh
 from l3d_app.render.free_space import near_surface_weight
 from l3d_app.render.rgbd import true_depth_maps
 from l3d_app.render.sdf_volume import render_sdf_rays
@@ -259,6 +261,13 @@ def volsdf(cfg, ctx) -> dict:
     val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val
     evals_after = evals_after_training(   # the test views, in validations (the gifs take what is left at the end)
         len(val), len(data.test), int(cfg.supersample), int(cfg.val_supersample))
+    # reserve: the mesh step's seconds at mesh_resolution 128; another resolution is priced by the SDF's timed cost
+    reserve, per_point = priced_mesh_seconds(int(cfg.mesh_resolution), float(cfg.reserve), model.sdf, box,
+                                             float(cfg.time_budget), ctx.device)
+    if per_point is not None:
+        ctx.logger.text("reserve", f"{reserve:.1f} s kept for the mesh at mesh_resolution={int(cfg.mesh_resolution)} "
+                                   f"(reserve={float(cfg.reserve):g} s at 128; the SDF costs {1e6 * per_point:.2f} "
+                                   f"us per grid point, measured)")
     resuming = bool(cfg.resume) and ctx.path("checkpoint.pt").exists()
     before_after, before_seconds = BeforeAfter(), None
     trainable.extra["before_after"] = before_after      # checkpointed: a resumed run keeps its "before"
@@ -269,7 +278,7 @@ def volsdf(cfg, ctx) -> dict:
     free, w_carve = None, float(fs.weight)
     if int(fs.steps) > 0 and w_carve > 0:     # what the training rays pass through, from a radiance field
         deadline = stage_deadline(float(cfg.time_budget), ctx.stopwatch.elapsed, before_seconds, evals_after,
-                                  float(cfg.reserve))
+                                  reserve)
         if resuming:     # the saved stretches, or none where the run being resumed skipped its stage
             deadline = 0.0 if ctx.path(FREE_SPACE_FILE).exists() else None
         before = "unknown" if before_seconds is None else f"{before_seconds:.1f} s"
@@ -367,7 +376,7 @@ def volsdf(cfg, ctx) -> dict:
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn if len(val) else None,
                        eval_every=int(cfg.eval_every), checkpoint_every=int(cfg.checkpoint_every),
                        resume=bool(cfg.resume), desc="volsdf", after_step=after_step,
-                       time_budget=float(cfg.time_budget), reserve=float(cfg.reserve),
+                       time_budget=float(cfg.time_budget), reserve=reserve,
                        reserve_evals=evals_after, horizon=horizon, eval_price=before_seconds)
     model.eval()
     with torch.no_grad():
@@ -391,6 +400,7 @@ def volsdf(cfg, ctx) -> dict:
         "beta": float(cfg.beta), "iters": result.step, "n_params": sum(p.numel() for p in model.parameters()),
         "warmup_steps": int(optim_cfg.get("warmup_steps", 0)),
         "train_seconds": round(stats["train_seconds"], 4), "mesh_seconds": round(ctx.stopwatch.stages["mesh"], 4),
+        "mesh_reserve_seconds": round(reserve, 4),
         "gif_seconds": round(ctx.stopwatch.stages.get("gifs", 0.0), 4), "gif_frames": frames,
         "free_space_seconds": round(ctx.stopwatch.stages.get("free_space", 0.0), 4),
         "free_space_rays": 0 if free is None else len(free),
