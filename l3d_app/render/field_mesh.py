@@ -30,8 +30,8 @@ def extract_mesh(level_fn: Callable[[torch.Tensor], torch.Tensor], box: Tuple[Se
     (e.g. a radiance field looking along ``-normal``); clamped to [0, 1].
     """
     try:
-        mesh = sdf_to_mesh(_on_grid(level_fn), resolution=int(resolution), bounds=(list(box[0]), list(box[1])), level=float(level),
-                           colors=None, device=device)
+        mesh = sdf_to_mesh(_on_grid(level_fn), resolution=int(resolution), bounds=(list(box[0]), list(box[1])),
+                           level=float(level), colors=None, device=device)
     except UserError:
         return None
     if color_fn is not None:

@@ -10,6 +10,7 @@ from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.metrics.image import psnr, ssim
 from l3d_app.render.evaluation import RenderFn, evaluation_picture, render_views
+from l3d_app.render.field_mesh import priced_mesh_seconds
 from l3d_app.render.mesh_visibility import cull_unseen_faces
 from l3d_app.runtime.media import save_png
 
@@ -190,6 +191,21 @@ def evals_after_training(n_eval_views: int, n_test_views: int, supersample: int 
     ``supersample``); the loop turns it into seconds with its own timing (``train(reserve_evals=...)``)."""
     val_ss = supersample if val_supersample is None else int(val_supersample)
     return n_test_views * supersample ** 2 / max(1, n_eval_views * val_ss ** 2)
+
+
+def mesh_seconds_to_keep(cfg, ctx, knob: str, level_fn: Callable[[torch.Tensor], torch.Tensor], box) -> float:
+    """Seconds a field task keeps under ``cfg.time_budget`` for its marching-cubes mesh: ``cfg[knob]``
+    (its price at ``mesh_resolution`` 128) or, at another resolution,
+    :func:`~l3d_app.render.field_mesh.priced_mesh_seconds` with ``level_fn`` ((N, 3) -> (N,)) timed over
+    ``box``; a TensorBoard note ``reserve`` gives the measured cost."""
+    resolution = int(cfg.mesh_resolution)
+    seconds, per_point = priced_mesh_seconds(resolution, float(cfg[knob]), level_fn, box, float(cfg.time_budget),
+                                             ctx.device)
+    if per_point is not None:
+        ctx.logger.text("reserve", f"{seconds:.1f} s kept for the mesh at mesh_resolution={resolution} ({knob}="
+                                   f"{float(cfg[knob]):g} s at 128; the field costs {1e6 * per_point:.2f} us per "
+                                   f"grid point, measured)")
+    return seconds
 
 
 def cull_to_training_views(mesh: Mesh, data, box, resolution: int) -> Tuple[Mesh, float]:

@@ -28,7 +28,7 @@ import torch
 
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import DATASETS, MODELS, SAMPLERS, TASKS
-from l3d_app.render.field_mesh import extract_mesh, priced_mesh_seconds, save_field_mesh
+from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
 from l3d_app.render.radiance import render_field_rays
 from l3d_app.render.turntable import color_depth_frames
 from l3d_app.runtime.config_values import config_words
@@ -40,7 +40,7 @@ from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import (background_parameter, require_mesh_formats, require_mesh_resolution,
                                  require_positive)
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
-                                        write_turntables)
+                                        mesh_seconds_to_keep, write_turntables)
 
 
 @TASKS.register("train_nerf")
@@ -113,14 +113,8 @@ def train_nerf(cfg, ctx) -> dict:
         before_after.after(picture)
         return {**metrics, **figures(), "images": {"views": picture}}
 
-    mesh_reserve = 0.0     # mesh_reserve is the mesh step's seconds at 128; another resolution: the density timed
-    if bool(cfg.extract_mesh):
-        mesh_reserve, per_point = priced_mesh_seconds(int(cfg.mesh_resolution), float(cfg.mesh_reserve),
-                                                      model.density, box, float(cfg.time_budget), ctx.device)
-        if per_point is not None:
-            ctx.logger.text("reserve", f"{mesh_reserve:.1f} s kept for the mesh at mesh_resolution="
-                                       f"{int(cfg.mesh_resolution)} (mesh_reserve={float(cfg.mesh_reserve):g} s at 128; "
-                                       f"the density costs {1e6 * per_point:.2f} us per grid point, measured)")
+    # mesh_reserve: the mesh step's seconds at mesh_resolution 128; another resolution: the density timed
+    mesh_reserve = mesh_seconds_to_keep(cfg, ctx, "mesh_reserve", model.density, box) if bool(cfg.extract_mesh) else 0.0
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn if len(val) else None,
                        eval_every=int(cfg.eval_every), checkpoint_every=int(cfg.checkpoint_every),

@@ -105,7 +105,7 @@ from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
 from l3d_app.render.density_choice import candidate_configs, choose_density
 from l3d_app.render.densities import transition_width
 from l3d_app.render.evaluation import render_views
-from l3d_app.render.field_mesh import extract_mesh, priced_mesh_seconds, save_field_mesh
+from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
 from l3d_app.render.free_space import near_surface_weight
 from l3d_app.render.rgbd import true_depth_maps
 from l3d_app.render.sdf_volume import render_sdf_rays
@@ -120,7 +120,7 @@ from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import (background_parameter, require_fade_end, require_mesh_formats,
                                  require_mesh_resolution, require_nonnegative, require_positive)
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
-                                        write_turntables)
+                                        mesh_seconds_to_keep, write_turntables)
 from l3d_app.tasks.free_space_common import FILE as FREE_SPACE_FILE
 from l3d_app.tasks.free_space_common import (MIN_STAGE_SECONDS, check_free_space_config, fit_free_rays,
                                                resolve_free_space, stage_deadline)
@@ -262,12 +262,7 @@ def volsdf(cfg, ctx) -> dict:
     evals_after = evals_after_training(   # the test views, in validations (the gifs take what is left at the end)
         len(val), len(data.test), int(cfg.supersample), int(cfg.val_supersample))
     # reserve: the mesh step's seconds at mesh_resolution 128; another resolution is priced by the SDF's timed cost
-    reserve, per_point = priced_mesh_seconds(int(cfg.mesh_resolution), float(cfg.reserve), model.sdf, box,
-                                             float(cfg.time_budget), ctx.device)
-    if per_point is not None:
-        ctx.logger.text("reserve", f"{reserve:.1f} s kept for the mesh at mesh_resolution={int(cfg.mesh_resolution)} "
-                                   f"(reserve={float(cfg.reserve):g} s at 128; the SDF costs {1e6 * per_point:.2f} "
-                                   f"us per grid point, measured)")
+    reserve = mesh_seconds_to_keep(cfg, ctx, "reserve", model.sdf, box)
     resuming = bool(cfg.resume) and ctx.path("checkpoint.pt").exists()
     before_after, before_seconds = BeforeAfter(), None
     trainable.extra["before_after"] = before_after      # checkpointed: a resumed run keeps its "before"
