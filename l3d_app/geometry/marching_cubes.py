@@ -25,6 +25,21 @@ def grid_points(lo: Sequence[float], hi: Sequence[float], resolution: int,
     return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
 
 
+# Peak host memory of sdf_to_mesh per grid point: the float32 values, their float64 copy and
+# skimage's work; 17.2 / 16.6 bytes measured at 256^3 / 384^3 (a sphere, 2026-11-29, ru_maxrss).
+GRID_BYTES_PER_POINT = 17
+
+
+def require_grid_memory(resolution: int, available: Optional[int], what: str = "mesh_resolution") -> None:
+    """UserError when a ``resolution``^3 marching-cubes grid needs more than ``available`` bytes of
+    host memory (:data:`GRID_BYTES_PER_POINT` per point); nothing is checked when ``available`` is None."""
+    need = GRID_BYTES_PER_POINT * int(resolution) ** 3
+    if available is not None and need > available:
+        raise UserError(f"{what}={int(resolution)} needs about {need / 2**30:.1f} GiB of memory for marching cubes "
+                        f"({GRID_BYTES_PER_POINT} bytes per grid point); {available / 2**30:.1f} GiB are available: "
+                        f"lower {what}")
+
+
 # Points per SDF call on CPU: an MLP's activations for this many points stay in cache. Measured
 # on 2 AVX2 cores (2026-11-28): volsdf's grid SDF at 128^3 2.8-4.0 s in 2^14-point calls against
 # 8.3-10.7 s in 2^18; neural_sdf's 128-wide MLP at 96^3 2.3-2.6 against 3.9-4.0 s.

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 
 from l3d_app.errors import UserError
@@ -19,3 +21,16 @@ def resolve_device(name: str = "auto") -> torch.device:
             raise UserError(f"device={name} requested but CUDA is not available; use device=auto or device=cpu")
         return torch.device(name)
     raise UserError(f"unknown device '{name}': use auto, cpu or cuda")
+
+
+def available_host_memory() -> Optional[int]:
+    """Bytes of host memory the kernel can give now (Linux ``/proc/meminfo`` MemAvailable), or None
+    where that is not known (another OS, an unreadable file)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024       # kB
+    except (OSError, ValueError, IndexError):
+        return None
+    return None

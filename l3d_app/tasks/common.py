@@ -8,9 +8,11 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
+from l3d_app.geometry.marching_cubes import require_grid_memory
 from l3d_app.registry import CAMERA_PATHS, RENDERERS
 from l3d_app.render.field_mesh import FIELD_MESH_FORMATS
 from l3d_app.runtime.config_values import config_words
+from l3d_app.runtime.device import available_host_memory
 from l3d_app.runtime.progress import progress
 
 
@@ -48,10 +50,12 @@ def require_nonnegative(cfg, *keys: str) -> None:
 
 def require_mesh_resolution(cfg) -> None:
     """UserError unless ``cfg.mesh_resolution`` is an integer >= 2 (marching-cubes cells per
-    axis): checked before training, since the mesh is extracted after it."""
+    axis) whose grid fits the host memory available now: checked before training, since the mesh is
+    extracted after it."""
     value = cfg.get("mesh_resolution")
     if isinstance(value, bool) or not isinstance(value, int) or value < 2:
         raise UserError(f"mesh_resolution must be an integer >= 2 (marching-cubes cells per axis), got {value!r}")
+    require_grid_memory(value, available_host_memory())
 
 
 def require_mesh_formats(cfg, key: str = "mesh_formats", allowed: Sequence[str] = FIELD_MESH_FORMATS) -> None:
