@@ -41,16 +41,15 @@ def test_the_probe_measures_seconds_per_point_of_the_grid(clock):
     assert clock.points == PROBE_RESOLUTION ** 3         # each grid point once, no more
 
 
-@pytest.mark.parametrize("resolution, expected", [
-    (128, 35.0),                                          # the configured price, as measured at 128
-    (256, 35.0 + 2 * 2e-6 * (256 ** 3 - 128 ** 3)),       # + 58.72 s: twice 14,680,064 extra points
-    (64, 35.0 - 2 * 2e-6 * (128 ** 3 - 64 ** 3)),         # fewer points, less time: 35 - 7.34 s
-    (8, 0.0),                                             # never below nothing
+@pytest.mark.parametrize("resolution, at_128, expected", [
+    (128, 35.0, 35.0),                                    # the configured price, as measured at 128
+    (256, 35.0, 35.0 + 58.720256),                        # + twice 14,680,064 extra points at 2 us
+    (64, 35.0, 35.0 - 7.340032),                          # fewer points, less time: twice 1,835,008 at 2 us
+    (8, 1.0, 0.0),                                        # never below nothing
 ])
-def test_the_price_follows_the_grid(resolution, expected):
-    seconds = 35.0 if resolution != 8 else 1.0
+def test_the_price_follows_the_grid(resolution, at_128, expected):
     assert MESH_PRICED_AT == 128
-    assert mesh_seconds_at(resolution, seconds, 2e-6) == pytest.approx(expected, rel=1e-12)
+    assert mesh_seconds_at(resolution, at_128, 2e-6) == pytest.approx(expected, rel=1e-12)
 
 
 def test_nothing_is_measured_at_128_or_without_a_budget(clock):
