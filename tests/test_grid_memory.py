@@ -1,5 +1,5 @@
 """A marching-cubes grid that cannot fit the host memory is refused before training, in one line,
-instead of a MemoryError after it. The memory available is faked, so the figures are arithmetic."""
+instead of an allocation failure after it. The memory available is faked, so the figures are arithmetic."""
 
 import os
 
