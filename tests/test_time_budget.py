@@ -235,6 +235,48 @@ def test_one_slow_validation_does_not_end_a_run(tmp_path, repeat_cost, stop_step
     assert result.history[0][1]["x"] == 2.0                            # ... with the repeat's figures
 
 
+def _priced_before_training(tmp_path, budget, cost):
+    """:func:`_timed_validations` after a task's own 50 s validation before training (``eval_price``):
+    every step also carries those 50 s."""
+    ctx, trainable, step_fn, eval_fn, seen = _timed_validations(tmp_path, budget, cost)
+    seen["extra"] = 50.0
+    return ctx, trainable, step_fn, eval_fn, seen
+
+
+@pytest.mark.parametrize("later_cost, stop_step, evals", [(5.0, 17, [10, 17]), (50.0, 10, [10])])
+def test_an_untrained_models_price_that_loses_the_budget_is_measured_again_after_training(
+        tmp_path, later_cost, stop_step, evals):
+    # steps cost 10 s; the task validated the untrained model before training (50 s: eval_price),
+    # the loop validates every 50 steps; 5 evaluations' worth follow the loop; budget 250 s. After step
+    # k the clock reads 10 k + 50, and at the 50 s price what follows is 300 s: stopping at any step
+    # passes the budget. The price is an untrained model's, so the loop trains on to step
+    # max(1, 50 // 5) = 10 and validates there. A trained model that renders in 5 s (train_nerf's
+    # occupancy grid after its warm-up): 155 + 30 < 250 -> on, until 10 k + 55 + 30 >= 250 at k = 17,
+    # whose price (7 steps old, confirmed) stands: stop, the final validation at 17. A model that
+    # stays that dear (50 s at step 10): 200 + 300 -> stop at 10, that validation the final one.
+    # Before: stop at step 1 and the untrained model's test views.
+    ctx, trainable, step_fn, eval_fn, seen = _priced_before_training(
+        tmp_path, 250.0, lambda s, before: 50.0 if s < 10 else later_cost)
+    result = train(ctx, trainable, step_fn, iters=1000, eval_fn=eval_fn, eval_every=50, reserve_evals=5.0,
+                   eval_price=50.0)
+    assert result.budget_stop and result.step == stop_step
+    assert seen["steps"] == evals
+
+
+def test_a_price_from_before_training_is_measured_again_before_a_budget_stop(tmp_path):
+    # as above with budget 1000 s and validations every 100 steps: at the 50 s price the loop stops
+    # at the first k with 10 k + 50 + 300 >= 1000: k = 65 (stopping there keeps the budget, so no
+    # wait). That price is 65 >= max(1, 100 // 5) = 20 steps old: validated again (5 s): 705 + 30 <
+    # 1000 -> on, to 10 k + 55 + 30 >= 1000 at k = 92, where the step-65 price is 27 >= 20 steps old:
+    # validated again (5 s): 980 + 30 -> stop. Before: stop at 65 on the untrained model's price.
+    ctx, trainable, step_fn, eval_fn, seen = _priced_before_training(
+        tmp_path, 1000.0, lambda s, before: 50.0 if s < 20 else 5.0)
+    result = train(ctx, trainable, step_fn, iters=1000, eval_fn=eval_fn, eval_every=100, reserve_evals=5.0,
+                   eval_price=50.0)
+    assert result.budget_stop and result.step == 92
+    assert seen["steps"] == [65, 92]
+
+
 class _Reserved(Exception):
     pass
 

@@ -424,7 +424,9 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
                 horizon.update(done, clock.predicted_steps(ctx.stopwatch.elapsed, done, eval_fn is not None,
                                                            eval_every))
             if done < iters and clock.out_of_time(ctx.stopwatch.elapsed, eval_fn is not None):
-                if _price_to_confirm(history, done, eval_fn, eval_every, confirmed):
+                if _untrained_price_says_lost(clock, ctx.stopwatch.elapsed, history, start, done, eval_fn, eval_every):
+                    continue        # stopping now cannot keep the budget at a price the training may lower
+                if _price_to_confirm(history, done, eval_fn, eval_every, confirmed, start):
                     # validate now: the final validation if the stop stands, a periodic one with the
                     # new price if it does not (_price_to_confirm says why)
                     metrics = _revalidate(ctx, clock, eval_fn, done, history)
@@ -496,17 +498,45 @@ def _optimizer_step(trainable: Trainable, step: int) -> None:
         raise UserError(f"the optimiser's update overflowed at step {step} ({err}): a learning rate too large?") from err
 
 
-def _price_to_confirm(history: Dict[str, Any], done: int, eval_fn, eval_every: int, confirmed: int) -> bool:
+def _price_to_confirm(history: Dict[str, Any], done: int, eval_fn, eval_every: int, confirmed: int,
+                      start: int = 0) -> bool:
     """Whether a budget stop at step ``done`` should validate again first: there is a validation
     to repeat, and the latest one was measured once (not itself the re-validation made at step
     ``confirmed``: one stall must not end a run) or is at least ``max(1, eval_every // 5)``
     steps old (it priced an earlier model: a fuzzy surface renders several times slower than
     the sharp one). At most one re-validation per validation and per that many steps, so a loop
-    near its budget does not validate at every step."""
-    if eval_fn is None or not history["eval"]:
+    near its budget does not validate at every step. With no validation of the loop's own, the
+    price is the task's (``eval_price``, a validation before step ``start``): validated again once
+    it is that many steps old."""
+    if eval_fn is None:
         return False
+    stale = max(1, int(eval_every or 0) // 5)
+    if not history["eval"]:
+        return done - start >= stale
     last = history["eval"][-1][0]
-    return last != confirmed or done - last >= max(1, int(eval_every or 0) // 5)
+    return last != confirmed or done - last >= stale
+
+
+def _untrained_price_says_lost(clock: "_LoopClock", elapsed: float, history: Dict[str, Any], start: int, done: int,
+                               eval_fn, eval_every: int) -> bool:
+    """Whether a budget stop at step ``done`` waits: the validation's price was measured on a model
+    trained fewer than ``max(1, eval_every // 5)`` steps, the loop has not yet trained that many,
+    and even stopping now would pass the budget at that price. An untrained model's rendering
+    cost says little of a trained one's (train_nerf's occupancy grid is all occupied during its
+    warm-up: ``ground``'s 4 validation views took 53 s before training, which priced the test views
+    past a 200 s budget, stopped the run at step 1 and overran it by 146 s on the untrained model's
+    test views). Stopping cannot keep the budget then; training on to that step and validating
+    there (:func:`_price_to_confirm`) can, where the price falls, and waits only while those steps
+    and ``reserve`` still fit the budget (a budget spent before training stops at once)."""
+    if eval_fn is None or clock.budget <= 0:
+        return False
+    early = max(1, int(eval_every or 0) // 5)
+    priced_at = history["eval"][-1][0] if history["eval"] else start
+    if priced_at >= early or done >= early:
+        return False
+    steps_left = (early - done) * clock.train_seconds / max(1, clock.steps)
+    return (elapsed + clock.after_loop_seconds(True) >= clock.budget
+            and elapsed + steps_left + clock.reserve < clock.budget)
 
 
 def _revalidate(ctx, clock: "_LoopClock", eval_fn, done: int, history: Dict[str, Any]) -> Dict[str, float]:
