@@ -281,8 +281,8 @@ class _Reserved(Exception):
     pass
 
 
-@pytest.mark.parametrize("overrides, expected", [((), 0.0), (("extract_mesh=true",), 30.0),
-                                                 (("extract_mesh=true", "reserve=5"), 35.0)])
+@pytest.mark.parametrize("overrides, expected", [((), 5.0), (("extract_mesh=true",), 35.0),
+                                                 (("extract_mesh=true", "reserve=0"), 30.0)])
 def test_train_nerf_keeps_its_mesh_seconds_only_when_it_extracts_a_mesh(compose, tmp_path, monkeypatch,
                                                                        overrides, expected):
     # the 30 s (mesh_reserve) used to be kept whether or not a mesh was written: without one, a

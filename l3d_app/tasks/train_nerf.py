@@ -12,7 +12,7 @@ after training (``psnr``, ``ssim`` in metrics.json; ``val_*`` the last validatio
 ``time_budget`` > 0: wall seconds for the whole task; the loop keeps time for the test views
 (priced at its validations), ``mesh_reserve`` seconds with ``extract_mesh=true`` (at ``mesh_resolution``
 128; another resolution adds the grid's extra points at the density's measured cost) and the top-level
-``reserve`` (0 unless set); the gif comes last with the
+``reserve`` (5 s: the task config); the gif comes last with the
 frames that still fit (:func:`~l3d_app.tasks.field_common.write_turntables`). Outputs: ``turntable.gif`` (colour | depth, orbiting the data's
 up axis), ``test_views.png``, ``metrics.json``; ``extract_mesh=true`` adds ``mesh.<fmt>`` of
 ``density = mesh_threshold`` coloured by the field (with ``mesh_cull``: only the faces some
