@@ -303,7 +303,10 @@ def train(ctx, trainable: Trainable, step_fn: Callable[[int], Dict[str, torch.Te
             first budget test (the final validation and ``reserve_evals`` are priced by it): without
             ``eval_price`` it validates once before its first step (logged at that step). Until the
             loop has timed a validation of its own, only the stop test reads this price, not the
-            ``horizon``.
+            ``horizon``; before a stop it is validated again once ``eval_every // 5`` steps old, and
+            a price measured on a model trained fewer steps than that which loses the budget even
+            if the loop stops at once does not stop it before that step
+            (:func:`_untrained_price_says_lost`).
 
     ``step_fn`` runs under ``autocast(ctx.precision, ctx.device)`` (the ``precision=`` knob:
     ``fp32`` does nothing, ``bf16`` autocasts the forward); backward and the optimiser step
