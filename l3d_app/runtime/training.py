@@ -526,9 +526,9 @@ def _untrained_price_says_lost(clock: "_LoopClock", elapsed: float, history: Dic
     trained fewer than ``max(1, eval_every // 5)`` steps, the loop has not yet trained that many,
     and even stopping now would pass the budget at that price. An untrained model's rendering
     cost says little of a trained one's (train_nerf's occupancy grid is all occupied during its
-    warm-up: ``ground``'s 4 validation views took 53 s before training, which priced the test views
-    past a 200 s budget, stopped the run at step 1 and overran it by 146 s on the untrained model's
-    test views). Stopping cannot keep the budget then; training on to that step and validating
+    warm-up: ``ground``'s 4 validation views took ~53 s before training, which priced what follows
+    training at 319 s under a 200 s budget, stopped the run at step 1 and overran it by 152 s on the
+    untrained model's test views: docs/measured/time_budget.md). Stopping cannot keep the budget then; training on to that step and validating
     there (:func:`_price_to_confirm`) can, where the price falls, and waits only while those steps
     and ``reserve`` still fit the budget (a budget spent before training stops at once)."""
     if eval_fn is None or clock.budget <= 0:
