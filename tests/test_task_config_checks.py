@@ -41,7 +41,6 @@ def test_nonnegative_accepts_zero_and_positive_and_positive_rejects_zero():
     ("volsdf", "ncc.best=5", "ncc.best must be at most ncc.sources"),
     ("volsdf", "ncc.weight=-1", "ncc.weight must be a number >= 0"),
     ("volsdf", "ncc.until=0", "ncc.until must be null or lie in"),
-    ("volsdf", "ncc.weight=0.5 pixel_jitter=true", "ncc.weight > 0 needs pixel_jitter=false"),
     ("volsdf", "beta=-0.1", "beta must be > 0"),                           # used to blame beta_min, after the data
     ("volsdf", "beta_end=0", "beta_end must be > 0"),
     ("volsdf", "beta_mode=foo", "density mode must be anneal, learnable or fixed"),

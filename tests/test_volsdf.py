@@ -186,14 +186,17 @@ def test_bunny_loader(tmp_path):
         bunny_points(str(tmp_path / "missing.npz"))
 
 
-def test_the_patch_loss_acts_until_its_fraction_of_the_steps(compose, tmp_path):
+@pytest.mark.parametrize("jitter", [False, True])
+def test_the_patch_loss_acts_until_its_fraction_of_the_steps(compose, tmp_path, jitter):
     """The default patch consistency is wired into the training step: logged with textured rays counting
-    while its weight is above zero, and absent from the log once ``ncc.until`` x iters is reached."""
+    while its weight is above zero, and absent from the log once ``ncc.until`` x iters is reached; with
+    ``pixel_jitter`` too (each patch centred on its ray's pixel)."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     cfg = compose("task=volsdf", *[o for o in TINY if not o.startswith(("ncc.", "tensorboard"))], "tensorboard=true",
                   "data.image_size=48", f"data.cache_dir={tmp_path / 'cache'}", "iters=40", "eval_every=40",
-                  "batch_rays=256", "pretrain_steps=20", "gif_frames=0", "mesh_resolution=24", "eval_points=500")
+                  "batch_rays=256", "pretrain_steps=20", "gif_frames=0", "mesh_resolution=24", "eval_points=500",
+                  f"pixel_jitter={str(jitter).lower()}")
     assert (cfg.ncc.weight, cfg.ncc.until) == (0.1, 0.5)
     run_task(cfg, out_dir=tmp_path / "run")
     events = EventAccumulator(str(next((tmp_path / "run").glob("events.out.tfevents.*"))), size_guidance={"scalars": 0})

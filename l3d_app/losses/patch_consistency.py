@@ -116,14 +116,18 @@ class PatchConsistency:
         return PatchConsistency(grey(images).contiguous(), cameras, nearest_views(cameras.centers(), n_sources), **kw)
 
     def loss(self, view: torch.Tensor, pixel: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
-             t_hit: torch.Tensor, normal: torch.Tensor, hit: torch.Tensor) -> Tuple[torch.Tensor, Dict[str, float]]:
+             t_hit: torch.Tensor, normal: torch.Tensor, hit: torch.Tensor,
+             centre_dirs: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, Dict[str, float]]:
         """Mean of ``(1 - NCC) / 2`` over the rays that count, and figures for the log.
 
         Args:
             view: (R,) long training view of each ray; ``pixel`` (R, 2) long its (row, column).
-            origins, dirs: (R, 3) the rays (unit ``dirs``) through those pixels' centres.
+            origins, dirs: (R, 3) the rays (unit ``dirs``) through those pixels' centres, or through
+                any point of those pixels when ``centre_dirs`` is given (jittered training rays).
             t_hit: (R,) distance to the surface along the ray; ``normal`` (R, 3) its normal there
                 (any length, either sign); ``hit`` (R,) bool rays that reach a surface.
+            centre_dirs: (R, 3) unit directions through the pixels' centres, where the patch is
+                centred (None: ``dirs``). The plane still passes through ``origins + t_hit * dirs``.
         Returns:
             ``(loss (), {"ncc_rays": share of rays that count, "ncc": their mean best NCC})``; a loss of
             0 (no gradient) where no ray counts. Computed in at least float32 with autocast off (pixel
@@ -131,10 +135,12 @@ class PatchConsistency:
         """
         work = torch.promote_types(torch.promote_types(origins.dtype, torch.float32), self.cameras.R.dtype)
         with torch.autocast(origins.device.type, enabled=False):
-            return self._loss(view, pixel, origins.to(work), dirs.to(work), t_hit.to(work), normal.to(work), hit)
+            centre = dirs if centre_dirs is None else centre_dirs
+            return self._loss(view, pixel, origins.to(work), dirs.to(work), t_hit.to(work), normal.to(work), hit,
+                              centre.to(work))
 
-    def _loss(self, view, pixel, origins, dirs, t_hit, normal, hit) -> Tuple[torch.Tensor, Dict[str, float]]:
-        """:meth:`loss` in the inputs' precision."""
+    def _loss(self, view, pixel, origins, dirs, t_hit, normal, hit, centre) -> Tuple[torch.Tensor, Dict[str, float]]:
+        """:meth:`loss` in the inputs' precision (``centre``: the unit rays through the pixel centres)."""
         cams, dtype = self.cameras, origins.dtype
         h, w = cams.height, cams.width
         off = patch_offsets(self.size, dtype, origins.device)                        # (P, 2)
@@ -146,11 +152,11 @@ class PatchConsistency:
         if self.masks is not None:       # patches wholly on the object: one surface, no silhouette across them
             in_ref = in_ref & (self.masks.reshape(-1)[at] >= self.min_alpha).all(-1)
         n = torch.nn.functional.normalize(normal, dim=-1)
-        cos_ref = (n * dirs).sum(-1)
+        cos_ref = (n * centre).sum(-1)
         x = origins + t_hit[:, None] * dirs                                           # (R, 3)
         # rays through the patch pixels: unnormalised directions, camera Z = 1
         du, dv = pixel_axes(cams)                                                     # (V, 3) per pixel step
-        d_centre = dirs / (dirs * cams.R[view, 2]).sum(-1, keepdim=True)
+        d_centre = centre / (centre * cams.R[view, 2]).sum(-1, keepdim=True)
         d_patch = d_centre[:, None] + off[None, :, :1] * du[view, None] + off[None, :, 1:] * dv[view, None]   # (R, P, 3)
         plane = ((x - origins) * n).sum(-1, keepdim=True)                            # (R, 1)
         denom = (d_patch * n[:, None]).sum(-1)                                        # (R, P)

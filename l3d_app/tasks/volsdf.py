@@ -304,7 +304,7 @@ def volsdf(cfg, ctx) -> dict:
         dens.schedule(nominal, int(cfg.iters))
         sampler.update(step, model, ctx.generator)
         idx = randint(0, n_rays, (batch,), ctx.generator, ctx.device)
-        d = flat_d[idx]
+        d = centre_d = flat_d[idx]
         if bool(cfg.pixel_jitter):     # a uniformly random point of the pixel: the images are box-filtered (SSAA)
             j = rand((batch, 2), ctx.generator, ctx.device) - 0.5
             d = d + j[:, :1] * du[flat_cam[idx]] + j[:, 1:] * dv[flat_cam[idx]]
@@ -348,7 +348,8 @@ def volsdf(cfg, ctx) -> dict:
             t_hit, normal, hit = surface_crossing(out["t"].reshape(batch, -1), out["sdf"].reshape(batch, -1),
                                                   out["grad"].reshape(batch, -1, 3))
             ncc, figs = patches.loss(view, torch.stack([rest // data.cameras.width, rest % data.cameras.width], -1),
-                                     flat_o[idx], out_dirs, t_hit, normal, hit)
+                                     flat_o[idx], out_dirs, t_hit, normal, hit,
+                                     centre_dirs=torch.nn.functional.normalize(centre_d, dim=-1))
             loss, logs["ncc_loss"] = loss + w_ncc * ncc, ncc.detach()
             logs.update({k: torch.tensor(v) for k, v in figs.items()})
         stats["samples_per_ray"] = float(out["samples_per_ray"])
@@ -430,9 +431,6 @@ def _check_ncc(cfg) -> None:
     require_fade_end(c.get("until"), "ncc.until")
     if c.best > c.sources:
         raise UserError(f"ncc.best must be at most ncc.sources ({c.sources}), got {c.best}")
-    if float(c.weight) > 0 and bool(cfg.pixel_jitter):
-        raise UserError("ncc.weight > 0 needs pixel_jitter=false (each patch is centred on its ray's pixel); "
-                        "ncc.weight=0 turns the patch loss off")
 
 
 def _patch_consistency(cfg, data, train_views: torch.Tensor):
