@@ -88,6 +88,11 @@ def _nerf(conf, state, data, device, chunk) -> Render:
 
 
 def _volsdf(conf, state, data, device, chunk) -> Render:
+    return _field_renderer(volsdf_rays(conf, state, data, device), chunk, normalize=False)
+
+
+def volsdf_rays(conf, state, data, device):
+    """A volsdf run's ``fn(origins, dirs)`` (camera-Z = 1 directions), rendered as its evaluation does."""
     from l3d_app.models.sdf_gradients import field_with_gradient
     from l3d_app.render.sdf_volume import render_sdf_rays
 
@@ -101,8 +106,7 @@ def _volsdf(conf, state, data, device, chunk) -> Render:
     # checkpointed copy can be up to `every` steps old, and evaluation renders skip the rays it calls empty)
     sampler.update(int(state.get("step", 0)), model, None, force=True)
     field_fn = field_with_gradient(model)
-    return _field_renderer(lambda o, d: render_sdf_rays(field_fn, o, d, sampler, dens, field=model,
-                                                        background=background), chunk, normalize=False)
+    return lambda o, d: render_sdf_rays(field_fn, o, d, sampler, dens, field=model, background=background)
 
 
 def _gaussian_renderer(model, sh_degree: int, background, tile_size: int = 4) -> Render:
