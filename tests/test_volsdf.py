@@ -208,6 +208,28 @@ def test_the_patch_loss_acts_until_its_fraction_of_the_steps(compose, tmp_path, 
     assert 30 in {e.step for e in events.Scalars("train/color_loss")}   # the run went on without it
 
 
+def test_tensorboard_shows_where_the_time_budget_has_moved_the_schedules(compose, tmp_path, monkeypatch):
+    """The loop's prediction faked to 20 of 40 steps from the first step on (the run cut at 15):
+    train/predicted_steps reads 20 and train/nominal_step, the step the schedules (beta, LR, grid
+    levels) are read at, twice the step (step * iters / steps: 20 at step 10)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from l3d_app.app import RunInterrupted
+    from l3d_app.runtime import training
+
+    monkeypatch.setattr(training._LoopClock, "predicted_steps", lambda self, *a: 20.0)
+    monkeypatch.setenv("L3D_STOP_AT_STEP", "15")
+    cfg = compose("task=volsdf", *[o for o in TINY if not o.startswith("tensorboard")], "tensorboard=true",
+                  f"data.cache_dir={tmp_path / 'cache'}", "iters=40", "eval_every=40", "batch_rays=64",
+                  "pretrain_steps=5", "gif_frames=0", "time_budget=100000")
+    with pytest.raises(RunInterrupted):
+        run_task(cfg, out_dir=tmp_path / "run")
+    events = EventAccumulator(str(next((tmp_path / "run").glob("events.out.tfevents.*"))), size_guidance={"scalars": 0})
+    events.Reload()
+    nominal = {e.step: e.value for e in events.Scalars("train/nominal_step")}
+    predicted = {e.step: e.value for e in events.Scalars("train/predicted_steps")}
+    assert nominal == pytest.approx({0: 0.0, 10: 20.0}) and predicted == pytest.approx({0: 40.0, 10: 20.0})
+
+
 def test_warmup_steps_auto_follows_the_density_and_bad_values_are_refused():
     from l3d_app.tasks.volsdf import WARMUP_STEPS_AUTO, warmup_steps_for
 

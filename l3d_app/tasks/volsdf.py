@@ -312,6 +312,7 @@ def volsdf(cfg, ctx) -> dict:
         out = render(flat_o[idx], out_dirs, perturb=True, generator=ctx.generator)
         color_loss = ((out["color"] - flat_rgb[idx]) ** 2).mean()
         logs = {"color_loss": color_loss.detach(), "samples_per_ray": out["samples_per_ray"],
+                "nominal_step": torch.tensor(float(nominal)), "predicted_steps": torch.tensor(horizon.steps),
                 **{k: torch.tensor(v) for k, v in dens.stats().items()},
                 "active_levels": torch.tensor(float(levels.active))}
         loss = color_loss
