@@ -209,9 +209,10 @@ def test_the_patch_loss_acts_until_its_fraction_of_the_steps(compose, tmp_path, 
 
 
 def test_tensorboard_shows_where_the_time_budget_has_moved_the_schedules(compose, tmp_path, monkeypatch):
-    """The loop's prediction faked to 20 of 40 steps from the first step on (the run cut at 15):
-    train/predicted_steps reads 20 and train/nominal_step, the step the schedules (beta, LR, grid
-    levels) are read at, twice the step (step * iters / steps: 20 at step 10)."""
+    """The loop's prediction faked to 20 of 40 steps (the run cut at 15): step 0 runs before the
+    loop has predicted (40 steps, nominal 0); by step 10 train/predicted_steps reads 20 and
+    train/nominal_step, the step the schedules (beta, LR, grid levels) are read at, twice the
+    step (step * iters / steps = 20)."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
     from l3d_app.app import RunInterrupted
     from l3d_app.runtime import training
