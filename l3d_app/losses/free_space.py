@@ -16,6 +16,10 @@ empty (a point on a training ray before any surface, ``render/free_space.py``): 
 ``mean(relu(-f))``, ``density`` the stretch's optical depth (1-point estimate, VolSDF only),
 ``occupancy`` the density module's occupancy x length (VolSDF's ``Psi_beta(-f)``, NeuS's ``Phi_s(-f)``).
 
+``opacity_before(weights, t, ray_indices, ends, n_rays)``: the same claim on whole rays: the opacity a
+render's own samples accumulate before each ray's free-stretch end. Its gradient falls on the samples
+that carry the ray's weight (a thin sheet in front of the end gets all of it), with no extra points.
+
 ``occupied_fraction(f, softness) = mean(sigmoid(-f / softness))``: the share of the box inside
 the solid, smoothed over ``softness`` world units; its gradient sits at the boundary
 (``|f|`` within a few ``softness``) and leaves the inside's values alone.
@@ -67,3 +71,20 @@ def free_stretch_loss(kind: str, f: torch.Tensor, length: torch.Tensor, density,
     else:
         term = density.occupancy(f) * length
     return (term if weights is None else term * weights).mean()
+
+
+def opacity_before(weights: torch.Tensor, t_starts: torch.Tensor, ray_indices: torch.Tensor, ends: torch.Tensor,
+                   n_rays: int) -> torch.Tensor:
+    """(R,) per ray, the summed compositing weights of its packed samples that start before its end.
+
+    Args:
+        weights: (N,) each sample's weight ``T_i (1 - exp(-tau_i))`` (a render's ``weights``).
+        t_starts: (N,) each sample's start along its ray (world units). ray_indices: (N,) its ray.
+        ends: (R,) each ray's free-stretch end (world units; -inf: none, the ray contributes 0;
+            +inf: all of it). n_rays: R.
+    Returns:
+        (R,) the opacity accumulated in front of ``ends`` (in [0, 1] for a render's weights), to the
+        sample boundary at or after the end (a sample that straddles it counts whole).
+    """
+    inside = (t_starts < ends.index_select(0, ray_indices)).to(weights.dtype)
+    return weights.new_zeros(int(n_rays)).index_add(0, ray_indices, weights * inside)

@@ -67,22 +67,43 @@ def near_surface_weight(sdf: torch.Tensor, width: float) -> torch.Tensor:
 class FreeRays:
     """Training rays with a known free segment ``[near, far]`` (world units along unit ``dirs``).
 
-    ``origins``, ``dirs`` (M, 3); ``near``, ``far`` (M,), ``far > near``."""
+    ``origins``, ``dirs`` (M, 3); ``near``, ``far`` (M,), ``far > near``; ``index`` (M,) each ray's
+    index among the rays it was read off (None: not known); ``open_end`` (M,) bool: the radiance field
+    never reached the opacity level on it (free to the box exit; None: not known)."""
 
     origins: torch.Tensor
     dirs: torch.Tensor
     near: torch.Tensor
     far: torch.Tensor
+    index: Optional[torch.Tensor] = None
+    open_end: Optional[torch.Tensor] = None
 
     @classmethod
     def from_distances(cls, origins: torch.Tensor, dirs: torch.Tensor, distances: torch.Tensor,
-                       box: Tuple[Sequence[float], Sequence[float]], margin: float) -> "FreeRays":
+                       box: Tuple[Sequence[float], Sequence[float]], margin: float,
+                       index: Optional[torch.Tensor] = None) -> "FreeRays":
         """Each ray's stretch inside ``box`` up to ``distances - margin`` (a ray that never reaches
-        the opacity level is free to the box exit); rays with nothing left are dropped."""
+        the opacity level is free to the box exit); rays with nothing left are dropped. ``index`` (R,):
+        the rays' indices among the training rays (default ``0..R-1``), kept for :meth:`ends_per_ray`."""
         near, far, hit = ray_aabb(origins, dirs, box[0], box[1])
         end = torch.minimum(far, distances - float(margin))
         keep = hit & (end > near)
-        return cls(origins[keep], dirs[keep], near[keep], end[keep])
+        if index is None:
+            index = torch.arange(origins.shape[0], device=origins.device)
+        return cls(origins[keep], dirs[keep], near[keep], end[keep], index[keep], torch.isinf(distances)[keep])
+
+    def ends_per_ray(self, n_rays: int, covered: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """(n_rays,) where each training ray's free segment ends (world units along its unit direction):
+        ``far`` for the rays kept here, -inf (nothing known to be free) for the others. ``covered``
+        (n_rays,) bool, e.g. the images' alpha >= 0.5: a covered ray on which the radiance field never
+        became opaque gets -inf too (its transparency there contradicts the data: no claim is made)."""
+        if self.index is None:
+            raise UserError("these free rays do not know their training-ray indices (built without index)")
+        ends = torch.full((int(n_rays),), float("-inf"), dtype=self.far.dtype, device=self.far.device)
+        far = self.far
+        if covered is not None and self.open_end is not None:
+            far = torch.where(covered[self.index] & self.open_end, torch.full_like(far, float("-inf")), far)
+        return ends.index_put_((self.index,), far)
 
     def __len__(self) -> int:
         return int(self.near.shape[0])

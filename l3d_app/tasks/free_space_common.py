@@ -36,12 +36,13 @@ FILE = "free_space.pt"
 def check_free_space_config(cfg) -> None:
     """One line, exit 2, before any data is read: the stage's knobs (``cfg`` = ``free_space``)."""
     named = {f"free_space.{k}": cfg.get(k) for k in ("steps", "auto_steps", "batch_rays", "opacity", "margin",
-                                                      "margin_beta", "points", "weight", "chunk", "max_rays")}
+                                                      "margin_beta", "points", "weight", "ray_weight", "chunk",
+                                                      "max_rays")}
     steps = named["free_space.steps"]
     if steps != "auto" and (isinstance(steps, bool) or not isinstance(steps, (int, float)) or steps < 0):
         raise UserError(f"free_space.steps must be auto or a number >= 0, got {steps!r}")
     require_nonnegative(named, "free_space.auto_steps", "free_space.margin", "free_space.margin_beta",
-                        "free_space.weight", "free_space.max_rays")
+                        "free_space.weight", "free_space.ray_weight", "free_space.max_rays")
     require_positive(named, "free_space.batch_rays", "free_space.points", "free_space.chunk", "free_space.opacity")
     if str(cfg.get("proposal")) not in ("uniform", "surface"):
         raise UserError(f"free_space.proposal must be uniform or surface, got {cfg.get('proposal')!r}")
@@ -112,7 +113,7 @@ def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor
         saved = torch.load(path, map_location="cpu", weights_only=True)
         keep = saved["index"].to(ctx.device)
         return FreeRays.from_distances(origins[keep], dirs[keep], saved["distance"].to(ctx.device), box,
-                                       float(cfg.margin))
+                                       float(cfg.margin), keep)
     t_start = time.perf_counter()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
     sampler = SAMPLERS.build(cfg.sampler, scene_box=box).to(ctx.device)
@@ -142,7 +143,7 @@ def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator, force=True)
         dist = free_distances(model, sampler, origins[keep], dirs[keep], float(cfg.opacity), int(cfg.chunk))
-    free = FreeRays.from_distances(origins[keep], dirs[keep], dist, box, float(cfg.margin))
+    free = FreeRays.from_distances(origins[keep], dirs[keep], dist, box, float(cfg.margin), keep)
     torch.save({"index": keep.cpu(), "distance": dist.cpu()}, path)
     ctx.logger.text("free_space", f"radiance field: {result.step} steps; {len(free)} of {len(keep)} training rays "
                                   f"have a free segment, mean length {float((free.far - free.near).mean()):.3f}; "

@@ -52,7 +52,10 @@ training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.ren
   ``free_space.weight`` x a loss at ``free_space.points`` points drawn on those stretches (uniformly,
   or with ``free_space.proposal=surface`` importance-resampled near the surface, the same expectation; what a
   ray passes through before any surface is empty; :func:`~l3d_app.losses.free_space.free_stretch_loss`), the weight falling
-  linearly to 0 at ``free_space.until`` x iters when that is set. With a ``time_budget`` the stage
+  linearly to 0 at ``free_space.until`` x iters when that is set; ``free_space.ray_weight`` (default 0: off) adds
+  that weight x the batch mean of the render's opacity before each ray's own stretch end (the same shortening;
+  :func:`~l3d_app.losses.free_space.opacity_before`; a ray the images' alpha covers on which the radiance field
+  never became opaque makes no claim). With a ``time_budget`` the stage
   gets at most half of what the budget leaves after the final work predicted from the timed "before"
   validation (:func:`~l3d_app.tasks.free_space_common.stage_deadline`), and is skipped (logged,
   ``free_space_skipped`` in the metrics) where that is under 90 s: at 256 px the test views cost
@@ -94,7 +97,8 @@ from omegaconf import OmegaConf
 from l3d_app.errors import UserError
 from l3d_app.geometry.rays import camera_rays, pixel_axes
 from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
-from l3d_app.losses.free_space import fade_to_zero, free_stretch_loss, occupied_fraction, occupied_volume
+from l3d_app.losses.free_space import (fade_to_zero, free_stretch_loss, occupied_fraction, occupied_volume,
+                                       opacity_before)
 from l3d_app.losses.occupancy import coverage_bce
 from l3d_app.losses.patch_consistency import PatchConsistency, surface_crossing
 from l3d_app.metrics.surface_scores import surface_scores
@@ -270,8 +274,8 @@ def volsdf(cfg, ctx) -> dict:
         t_before = time.perf_counter()
         before_after.before(ctx, lambda: evaluate(val, int(cfg.val_supersample)))
         before_seconds = time.perf_counter() - t_before
-    free, w_carve = None, float(fs.weight)
-    if int(fs.steps) > 0 and w_carve > 0:     # what the training rays pass through, from a radiance field
+    free, w_carve, w_ray = None, float(fs.weight), float(fs.ray_weight)
+    if int(fs.steps) > 0 and (w_carve > 0 or w_ray > 0):     # what the training rays pass through, from a radiance field
         deadline = stage_deadline(float(cfg.time_budget), ctx.stopwatch.elapsed, before_seconds, evals_after,
                                   reserve)
         if resuming:     # the saved stretches, or none where the run being resumed skipped its stage
@@ -289,6 +293,10 @@ def volsdf(cfg, ctx) -> dict:
                                      flat_rgb, cfg.learn_background, deadline, resuming)
             if free is None:     # interrupted during the stage: nothing trained yet
                 return {"interrupted_in": "free_space"}
+    ray_ends = None     # (n_rays,) each training ray's free-stretch end, for free_space.ray_weight
+    if free is not None and w_ray > 0:
+        covered = data.masks[tr].reshape(-1) >= 0.5 if data.masks is not None else None
+        ray_ends = free.ends_per_ray(n_rays, covered)
 
     cache = getattr(sampler, "cache", None)
     half_cell = 0.5 * cache.cell_size if cache is not None else 0.0
@@ -330,9 +338,13 @@ def volsdf(cfg, ctx) -> dict:
                 soft = float(cfg.free_softness)
                 occ = occupied_fraction(f_box, soft) if soft > 0 else occupied_volume(f_box)
                 loss, logs["free_prior"] = loss + float(cfg.w_free) * occ, occ.detach()
-        w_now = w_carve * fade_to_zero(nominal / max(int(cfg.iters), 1), fs.get("until"))
+        fade = fade_to_zero(nominal / max(int(cfg.iters), 1), fs.get("until"))
+        w_now = w_carve * fade
+        shorten = float(fs.margin_beta) * transition_width(dens) if float(fs.margin_beta) > 0 else 0.0
+        if ray_ends is not None and w_ray * fade > 0:     # the render's own opacity before each ray's stretch end
+            before = opacity_before(out["weights"], out["t"], out["ray_indices"], ray_ends[idx] - shorten, batch)
+            loss, logs["free_ray"] = loss + w_ray * fade * before.mean(), before.mean().detach()
         if free is not None and len(free) and w_now > 0:   # points some training ray passes before any surface
-            shorten = float(fs.margin_beta) * transition_width(dens) if float(fs.margin_beta) > 0 else 0.0
             if str(fs.proposal) == "surface":     # the same loss, its points drawn where it has a gradient
                 pts, length, iw = free.sample_resampled(int(fs.points), int(fs.candidates), proposal,
                                                         ctx.generator, shorten, float(fs.mix))
@@ -401,7 +413,7 @@ def volsdf(cfg, ctx) -> dict:
         "gif_seconds": round(ctx.stopwatch.stages.get("gifs", 0.0), 4), "gif_frames": frames,
         "free_space_seconds": round(ctx.stopwatch.stages.get("free_space", 0.0), 4),
         "free_space_rays": 0 if free is None else len(free),
-        "free_space_skipped": bool(int(fs.steps) > 0 and w_carve > 0 and free is None),
+        "free_space_skipped": bool(int(fs.steps) > 0 and (w_carve > 0 or w_ray > 0) and free is None),
         "samples_per_ray": round(stats["samples_per_ray"], 3),
         "fine_samples_per_ray": round(stats["fine_samples_per_ray"], 3),
         "rays_per_second": round(stats["steps"] * batch / max(stats["train_seconds"], 1e-9), 1),
