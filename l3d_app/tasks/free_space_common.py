@@ -22,7 +22,6 @@ from typing import Optional
 import torch
 
 from l3d_app.errors import UserError
-from l3d_app.losses.occupancy import coverage_bce
 from l3d_app.registry import MODELS, SAMPLERS
 from l3d_app.render.free_space import FreeRays, free_distances
 from l3d_app.render.radiance import render_field_rays
@@ -37,13 +36,13 @@ FILE = "free_space.pt"
 def check_free_space_config(cfg) -> None:
     """One line, exit 2, before any data is read: the stage's knobs (``cfg`` = ``free_space``)."""
     named = {f"free_space.{k}": cfg.get(k) for k in ("steps", "auto_steps", "batch_rays", "opacity", "margin",
-                                                      "margin_beta", "points", "weight", "ray_weight", "w_mask", "chunk",
+                                                      "margin_beta", "points", "weight", "ray_weight", "chunk",
                                                       "max_rays")}
     steps = named["free_space.steps"]
     if steps != "auto" and (isinstance(steps, bool) or not isinstance(steps, (int, float)) or steps < 0):
         raise UserError(f"free_space.steps must be auto or a number >= 0, got {steps!r}")
     require_nonnegative(named, "free_space.auto_steps", "free_space.margin", "free_space.margin_beta",
-                        "free_space.weight", "free_space.ray_weight", "free_space.w_mask", "free_space.max_rays")
+                        "free_space.weight", "free_space.ray_weight", "free_space.max_rays")
     require_positive(named, "free_space.batch_rays", "free_space.points", "free_space.chunk", "free_space.opacity")
     if str(cfg.get("proposal")) not in ("uniform", "surface"):
         raise UserError(f"free_space.proposal must be uniform or surface, got {cfg.get('proposal')!r}")
@@ -104,12 +103,9 @@ def stage_deadline(time_budget: float, elapsed: float, eval_seconds: Optional[fl
 
 
 def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor, colors: torch.Tensor,
-                  learn_background, deadline: float, resume: bool,
-                  coverage: Optional[torch.Tensor] = None) -> Optional[FreeRays]:
+                  learn_background, deadline: float, resume: bool) -> Optional[FreeRays]:
     """Fit the stage's radiance field to the training rays (``origins``, unit ``dirs``, ``colors``
     (R, 3)) and return their free segments; None when interrupted. ``cfg`` = ``free_space``;
-    ``coverage`` (R,) in [0, 1]: the images' alpha, fitted too with ``cfg.w_mask`` x the BCE of each ray's
-    opacity (:func:`~l3d_app.losses.occupancy.coverage_bce`; None or ``w_mask`` 0: colours only);
     ``learn_background`` as the task's (one RGB behind the box when the data does not know it);
     ``deadline``: the task's elapsed seconds where the fit stops (:func:`stage_deadline`; 0: none)."""
     path = ctx.path(FILE)
@@ -126,17 +122,14 @@ def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor
     opt, scheds = build_optimizer(cfg.optim, params, int(cfg.steps))
     trainable = Trainable({"field": model, "background": background}, opt, extra={"sampler": sampler},
                           schedulers=scheds)
-    n, batch, w_mask = origins.shape[0], int(cfg.batch_rays), float(cfg.get("w_mask", 0.0))
+    n, batch = origins.shape[0], int(cfg.batch_rays)
 
     def step_fn(step: int):
         sampler.update(step, model, ctx.generator)
         idx = randint(0, n, (batch,), ctx.generator, ctx.device)
         out = render_field_rays(model, origins[idx], dirs[idx], sampler, perturb=True, generator=ctx.generator,
                                 background=background["rgb"].clamp(0, 1))
-        loss = ((out["color"] - colors[idx]) ** 2).mean()
-        if coverage is not None and w_mask > 0:     # an object the field left translucent is opaque in the alpha
-            loss = loss + w_mask * coverage_bce(out["optical_depth"], coverage[idx])
-        return {"loss": loss, "samples_per_ray": out["samples_per_ray"]}
+        return {"loss": ((out["color"] - colors[idx]) ** 2).mean(), "samples_per_ray": out["samples_per_ray"]}
 
     result = train(ctx, trainable, step_fn, int(cfg.steps), desc="free space (radiance field)",
                    time_budget=float(deadline), reserve=0.0,

@@ -290,8 +290,7 @@ def volsdf(cfg, ctx) -> dict:
                                           f"validation {before} x {1 + evals_after:.1f})")
             with ctx.stopwatch.stage("free_space"):
                 free = fit_free_rays(fs, ctx, data, box, flat_o, torch.nn.functional.normalize(flat_d, dim=-1),
-                                     flat_rgb, cfg.learn_background, deadline, resuming,
-                                     data.masks[tr].reshape(-1) if data.masks is not None else None)
+                                     flat_rgb, cfg.learn_background, deadline, resuming)
             if free is None:     # interrupted during the stage: nothing trained yet
                 return {"interrupted_in": "free_space"}
     ray_ends = None     # (n_rays,) each training ray's free-stretch end, for free_space.ray_weight
