@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from l3d_app.losses.free_space import colour_gate, opacity_before
+from l3d_app.losses.free_space import opacity_before
 from l3d_app.render.free_space import FreeRays
 from l3d_app.render.rendering import render_rays
 
@@ -116,14 +116,3 @@ def test_a_sheet_in_front_of_the_end_is_thinned_away():
         loss.backward()
         opt.step()
     assert start > 0.5 and float(c.detach()) < 0 and float(loss.detach()) < 0.2
-
-
-def test_colour_gate_is_each_error_over_the_batch_mean():
-    rendered = torch.tensor([[0.5, 0.5, 0.5], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], requires_grad=True)
-    target = torch.tensor([[0.5, 0.5, 0.5], [0.1, 0.2, 0.0], [0.0, 0.0, 0.0]])
-    gate = colour_gate(rendered, target)
-    errors = [0.0, 0.01 + 0.04, 1.0]                      # squared colour errors by hand
-    mean = sum(errors) / 3
-    torch.testing.assert_close(gate, torch.tensor([e / mean for e in errors]))
-    assert not gate.requires_grad and float(gate.mean()) == pytest.approx(1.0)
-    torch.testing.assert_close(colour_gate(target, target), torch.ones(3))      # nothing to tell apart

@@ -19,8 +19,6 @@ empty (a point on a training ray before any surface, ``render/free_space.py``): 
 ``opacity_before(weights, t, ray_indices, ends, n_rays)``: the same claim on whole rays: the opacity a
 render's own samples accumulate before each ray's free-stretch end. Its gradient falls on the samples
 that carry the ray's weight (a thin sheet in front of the end gets all of it), with no extra points.
-``colour_gate(rendered, target)`` weights each ray's term by its colour error over the batch's mean:
-the push falls where the render does not explain the pixel.
 
 ``occupied_fraction(f, softness) = mean(sigmoid(-f / softness))``: the share of the box inside
 the solid, smoothed over ``softness`` world units; its gradient sits at the boundary
@@ -90,13 +88,3 @@ def opacity_before(weights: torch.Tensor, t_starts: torch.Tensor, ray_indices: t
     """
     inside = (t_starts < ends.index_select(0, ray_indices)).to(weights.dtype)
     return weights.new_zeros(int(n_rays)).index_add(0, ray_indices, weights * inside)
-
-
-def colour_gate(rendered: torch.Tensor, target: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """(R,) each ray's squared colour error over the batch's mean, no gradient (mean 1 over the batch).
-
-    ``rendered``, ``target`` (R, C) colours. A ray whose render already explains its pixel gets a
-    small factor, one that does not a large one; all ones where every error is 0."""
-    err = ((rendered.detach() - target) ** 2).sum(-1)
-    mean = err.mean()
-    return err / mean if float(mean) > eps else torch.ones_like(err)

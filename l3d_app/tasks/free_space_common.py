@@ -51,8 +51,6 @@ def check_free_space_config(cfg) -> None:
         raise UserError(f"free_space.candidates must be an integer >= 1, got {cand!r}")
     if isinstance(mix, bool) or not isinstance(mix, (int, float)) or not 0 <= mix < 1:
         raise UserError(f"free_space.mix must lie in [0, 1), got {mix!r}")
-    if str(cfg.get("ray_gate")) not in ("none", "color"):
-        raise UserError(f"free_space.ray_gate must be none or color, got {cfg.get('ray_gate')!r}")
     if str(cfg.get("loss")) not in ("occupancy", "density", "outside"):
         raise UserError(f"free_space.loss must be occupancy, density or outside, got {cfg.get('loss')!r}")
     require_fade_end(cfg.get("until"), "free_space.until")

@@ -55,8 +55,7 @@ training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.ren
   linearly to 0 at ``free_space.until`` x iters when that is set; ``free_space.ray_weight`` (default 0: off) adds
   that weight x the batch mean of the render's opacity before each ray's own stretch end (the same shortening;
   :func:`~l3d_app.losses.free_space.opacity_before`; a ray the images' alpha covers on which the radiance field
-  never became opaque makes no claim), with ``free_space.ray_gate=color`` each ray's term weighted by its colour
-  error over the batch's mean (:func:`~l3d_app.losses.free_space.colour_gate`). With a ``time_budget`` the stage
+  never became opaque makes no claim). With a ``time_budget`` the stage
   gets at most half of what the budget leaves after the final work predicted from the timed "before"
   validation (:func:`~l3d_app.tasks.free_space_common.stage_deadline`), and is skipped (logged,
   ``free_space_skipped`` in the metrics) where that is under 90 s: at 256 px the test views cost
@@ -98,8 +97,8 @@ from omegaconf import OmegaConf
 from l3d_app.errors import UserError
 from l3d_app.geometry.rays import camera_rays, pixel_axes
 from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
-from l3d_app.losses.free_space import (colour_gate, fade_to_zero, free_stretch_loss, occupied_fraction,
-                                       occupied_volume, opacity_before)
+from l3d_app.losses.free_space import (fade_to_zero, free_stretch_loss, occupied_fraction, occupied_volume,
+                                       opacity_before)
 from l3d_app.losses.occupancy import coverage_bce
 from l3d_app.losses.patch_consistency import PatchConsistency, surface_crossing
 from l3d_app.metrics.surface_scores import surface_scores
@@ -344,8 +343,7 @@ def volsdf(cfg, ctx) -> dict:
         shorten = float(fs.margin_beta) * transition_width(dens) if float(fs.margin_beta) > 0 else 0.0
         if ray_ends is not None and w_ray * fade > 0:     # the render's own opacity before each ray's stretch end
             before = opacity_before(out["weights"], out["t"], out["ray_indices"], ray_ends[idx] - shorten, batch)
-            gate = colour_gate(out["color"], flat_rgb[idx]) if str(fs.ray_gate) == "color" else 1.0
-            loss, logs["free_ray"] = loss + w_ray * fade * (gate * before).mean(), before.mean().detach()
+            loss, logs["free_ray"] = loss + w_ray * fade * before.mean(), before.mean().detach()
         if free is not None and len(free) and w_now > 0:   # points some training ray passes before any surface
             if str(fs.proposal) == "surface":     # the same loss, its points drawn where it has a gradient
                 pts, length, iw = free.sample_resampled(int(fs.points), int(fs.candidates), proposal,
