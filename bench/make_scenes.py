@@ -25,6 +25,7 @@ texture     128   stripes and checks on flat slabs and a cube (1/16 periods)  he
 above       128   objects on a ground plate, cameras from above only          held out
 around      256   a glossy torus knot and a sphere, cameras from all round    held out
 dev256      256   dev at 256 px (only with ``--only dev256``): budget choices   DEVELOPMENT
+devtop      128   dev's objects seen only from above (``--only devtop``)     DEVELOPMENT
 ==========  ====  ==========================================================  ===============
 
 Lighting: a constant environment (radiance 0.5) and a directional sun (irradiance 3),
@@ -217,6 +218,9 @@ SCENES: Dict[str, dict] = {
                    tests="seen from all round, 256x256, glossy torus knot"),
     "dev256": dict(build=scene_dev, size=256, elev=(-30.0, 75.0), role="development", default=False,
                    tests="the development scene dev at 256x256: time-budget choices at the held-out scene's size"),
+    "devtop": dict(build=scene_dev, size=128, elev=(10.0, 80.0), role="development", default=False,
+                   tests="dev's objects (glossy banded sphere, uniform box, cylinder) seen only from above: what the "
+                         "VolSDF scenes get (density=auto), for losses that trust the free-space stage"),
 }
 
 
