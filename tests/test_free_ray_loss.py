@@ -1,7 +1,7 @@
 """The ray form of known free space (``free_space.ray_weight``): the opacity a render accumulates
 before each ray's free-stretch end, against a naive loop, against the closed form of a VolSDF
 plane (value and gradient in the plane's depth, float64), the training-ray bookkeeping of the
-stretch ends, and a thin sheet in front of the end driven out of the stretch by the loss."""
+stretch ends, and a thin sheet in front of the end thinned away by the loss alone."""
 
 import math
 

@@ -185,3 +185,47 @@ def test_proposal_knobs_are_checked(compose, override, message):
     from l3d_app.tasks.free_space_common import check_free_space_config
     with pytest.raises(UserError, match=message):
         check_free_space_config(compose("task=volsdf", override).free_space)
+
+
+def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, monkeypatch):
+    """free_space.ray_weight > 0 (the point loss off, margin_beta 0): every training step hands
+    opacity_before the stretch ends of exactly the rays it drew, rebuilt here from the saved
+    free_space.pt and the training rays (-inf where no stretch is known), and its term lowers
+    the render's opacity before those ends (the run logs it falling)."""
+    import l3d_app.tasks.volsdf as volsdf_task
+    from l3d_app.render.free_space import FreeRays
+
+    drawn, calls = [], []
+
+    def record_randint(*args, **kwargs):
+        out = randint_before(*args, **kwargs)
+        drawn.append(out)
+        return out
+
+    def record_opacity(weights, t, ray_indices, ends, n_rays):
+        out = opacity_before(weights, t, ray_indices, ends, n_rays)
+        calls.append((drawn[-1].clone(), ends.detach().clone(), float(out.detach().mean())))
+        return out
+    randint_before, opacity_before = volsdf_task.randint, volsdf_task.opacity_before
+    monkeypatch.setattr(volsdf_task, "randint", record_randint)
+    monkeypatch.setattr(volsdf_task, "opacity_before", record_opacity)
+    cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=30", "eval_every=30",
+                  "pretrain_steps=20", "free_space.steps=60", "free_space.weight=0", "free_space.ray_weight=1",
+                  "free_space.margin_beta=0", "gif_frames=0", "mesh_resolution=32", "eval_points=1000",
+                  "before_after=false", "batch_rays=256")
+    run_task(cfg, out_dir=tmp_path / "run")
+    assert len(calls) == 30
+    data = DATASETS.build(cfg.data)
+    o, d = camera_rays(data.cameras[data.train], normalize=False)
+    o, d = o.reshape(-1, 3), torch.nn.functional.normalize(d.reshape(-1, 3), dim=-1)
+    saved = torch.load(tmp_path / "run" / "free_space.pt")
+    keep = saved["index"]
+    free = FreeRays.from_distances(o[keep], d[keep], saved["distance"], data.scene_box.tolist(),
+                                   float(cfg.free_space.margin), keep)
+    covered = data.masks[data.train].reshape(-1) >= 0.5 if data.masks is not None else None
+    want = free.ends_per_ray(o.shape[0], covered)
+    for idx, ends, _ in calls:
+        torch.testing.assert_close(ends, want[idx])
+    assert torch.isfinite(want).float().mean() > 0.5          # most training rays carry a claim
+    first, last = sum(c[2] for c in calls[:5]) / 5, sum(c[2] for c in calls[-5:]) / 5
+    assert last < 0.5 * first

@@ -98,7 +98,7 @@ class FreeRays:
         (n_rays,) bool, e.g. the images' alpha >= 0.5: a covered ray on which the radiance field never
         became opaque gets -inf too (its transparency there contradicts the data: no claim is made)."""
         if self.index is None:
-            raise UserError("these free rays do not know their training-ray indices (built without index)")
+            raise ValueError("these free rays do not know their training-ray indices (built without index)")
         ends = torch.full((int(n_rays),), float("-inf"), dtype=self.far.dtype, device=self.far.device)
         far = self.far
         if covered is not None and self.open_end is not None:
