@@ -9,6 +9,10 @@ Needs the run's ``checkpoint.pt``, ``free_space.pt`` (a run with the free-space 
 2. On ``ground`` (its tray's position is written in): for the training rays whose true first hit is
    the tray's floor, its rim and walls, or elsewhere, the medians of (free distance - true depth),
    (mesh depth - true depth) and (free distance - mesh depth), along the ray (world units).
+3. Any scene: over every ``--every``-th training view, the share of the covered rays (the true mesh
+   hit) whose stretch end (free distance - margin) lies behind the true first surface by more than
+   0, 0.02 and 0.05, and by more than 0.02 per object of the scene's ``parts/*.ply`` (each true hit
+   assigned to its nearest part): where the stage's field put its density behind a surface.
 A diagnosis aid for the development scenes; it chooses nothing.
 """
 
@@ -30,6 +34,7 @@ def main() -> None:
     ap.add_argument("--scene", type=Path, default=REPO / "outputs" / ".cache" / "bench_scenes" / "ground")
     ap.add_argument("--points", type=int, default=400000)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--every", type=int, default=5, help="part 3: every this many training views")
     args = ap.parse_args()
     from volsdf_run import load_sdf_field
     from l3d_app.geometry.mesh_io import load_mesh
@@ -57,6 +62,7 @@ def main() -> None:
     near = f < 0.02
     print(f"loss points {len(f)}: f < 0 {float((f < 0).float().mean()):.4f}, f < 0.02 {float(near.float().mean()):.4f}, "
           f"their share of the integrand {float(g[near].sum() / g.sum()):.3f}")
+    stretch_ends_behind(args, conf, data, cams, saved, load_mesh, true_depth_maps, camera_rays)
     if args.scene.name != "ground":
         return
     truth = true_depth_maps(load_mesh(str(args.scene / "mesh.ply")), cams, scale=1) * norm
@@ -72,6 +78,31 @@ def main() -> None:
         ok = m & torch.isfinite(dist) & torch.isfinite(mesh)
         print(f"{name}: rays {int(m.sum())}; median free - truth {float((dist - truth)[ok].median()):+.3f}, "
               f"mesh - truth {float((mesh - truth)[ok].median()):+.3f}, free - mesh {float((dist - mesh)[ok].median()):+.3f}")
+
+
+def stretch_ends_behind(args, conf, data, cams, saved, load_mesh, true_depth_maps, camera_rays) -> None:
+    """Part 3 of the module docstring: printed, nothing returned."""
+    from l3d_app.geometry.point_mesh_distance import point_mesh_distance
+
+    views = torch.arange(0, len(cams), args.every)
+    hw = cams.height * cams.width
+    origins, dirs = camera_rays(cams[views], normalize=False)
+    norm = dirs.norm(dim=-1).reshape(-1)
+    truth = (true_depth_maps(load_mesh(str(args.scene / "mesh.ply")), cams[views], scale=1).reshape(-1) * norm)
+    dist = torch.full((len(cams) * hw,), float("nan"))
+    dist[saved["index"]] = saved["distance"].float()
+    end = dist[(views[:, None] * hw + torch.arange(hw)[None]).reshape(-1)] - float(conf.free_space.margin)
+    seen = torch.isfinite(truth)
+    print(f"stretch ends (every {args.every}th training view, {int(seen.sum())} covered rays): behind the truth by "
+          + ", ".join(f"> {tol}: {float((seen & (end > truth + tol)).sum() / seen.sum()):.4f}" for tol in (0.0, 0.02, 0.05)))
+    parts = sorted((args.scene / "parts").glob("*.ply"))
+    if not parts:
+        return
+    hit = (origins.reshape(-1, 3) + dirs.reshape(-1, 3) / norm[:, None] * torch.nan_to_num(truth, posinf=0.0)[:, None])[seen]
+    part = torch.stack([point_mesh_distance(hit, load_mesh(str(p))).distance for p in parts], 1).argmin(1)
+    behind = (end > truth + 0.02)[seen]
+    print("  by > 0.02, per object: " + ", ".join(f"{p.stem} {float(behind[part == k].float().mean()):.3f} "
+                                                   f"({int((part == k).sum())} rays)" for k, p in enumerate(parts)))
 
 
 if __name__ == "__main__":
