@@ -13,6 +13,9 @@ Needs the run's ``checkpoint.pt``, ``free_space.pt`` (a run with the free-space 
    hit) whose stretch end (free distance - margin) lies behind the true first surface by more than
    0, 0.02 and 0.05, and by more than 0.02 per object of the scene's ``parts/*.ply`` (each true hit
    assigned to its nearest part): where the stage's field put its density behind a surface.
+4. ``--rules`` (a run made with ``free_space.save_levels=[...]``; a stage-only run is enough:
+   ``iters=1 gif_frames=0``): other rules for where the stretches end, over all training views
+   (bench/free_space_end_rules.py).
 A diagnosis aid for the development scenes; it chooses nothing.
 """
 
@@ -35,6 +38,7 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=400000)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--every", type=int, default=5, help="part 3: every this many training views")
+    ap.add_argument("--rules", action="store_true", help="part 4: other stretch-end rules (needs save_levels)")
     args = ap.parse_args()
     from volsdf_run import load_sdf_field
     from l3d_app.geometry.mesh_io import load_mesh
@@ -63,6 +67,8 @@ def main() -> None:
     print(f"loss points {len(f)}: f < 0 {float((f < 0).float().mean()):.4f}, f < 0.02 {float(near.float().mean()):.4f}, "
           f"their share of the integrand {float(g[near].sum() / g.sum()):.3f}")
     stretch_ends_behind(args, conf, data, cams, saved, load_mesh, true_depth_maps, camera_rays)
+    if args.rules:
+        end_rules(args, conf, data, cams, saved, flat_o, flat_d, norm)
     if args.scene.name != "ground":
         return
     truth = true_depth_maps(load_mesh(str(args.scene / "mesh.ply")), cams, scale=1) * norm
@@ -73,11 +79,44 @@ def main() -> None:
     dist = dist.reshape(truth.shape)
     l1 = (hit[..., 0] + 0.45).abs() + (hit[..., 1] - 0.4).abs()         # the tray: a square about (-0.45, 0.4)
     seen = torch.isfinite(truth)
-    floor = seen & (l1 < 0.35) & (hit[..., 2] < -0.3)
+    floor = tray_floor(args.scene, origins, dirs / norm[..., None], truth)
     for name, m in (("tray floor", floor), ("tray rim/walls", seen & (l1 < 0.43) & ~floor), ("elsewhere", seen & (l1 >= 0.43))):
         ok = m & torch.isfinite(dist) & torch.isfinite(mesh)
         print(f"{name}: rays {int(m.sum())}; median free - truth {float((dist - truth)[ok].median()):+.3f}, "
               f"mesh - truth {float((mesh - truth)[ok].median()):+.3f}, free - mesh {float((dist - mesh)[ok].median()):+.3f}")
+
+
+def tray_floor(scene: Path, origins: torch.Tensor, dirs: torch.Tensor, truth: torch.Tensor):
+    """(N,) bool: the rays whose true first hit is ground's tray floor (a square about (-0.45, 0.4)
+    below z = -0.3); None on other scenes. ``truth``: (N,) distance along unit ``dirs``."""
+    if scene.name != "ground":
+        return None
+    hit = origins + dirs * torch.nan_to_num(truth, posinf=0.0)[..., None]
+    l1 = (hit[..., 0] + 0.45).abs() + (hit[..., 1] - 0.4).abs()
+    return torch.isfinite(truth) & (l1 < 0.35) & (hit[..., 2] < -0.3)
+
+
+def end_rules(args, conf, data, cams, saved, flat_o, flat_d, norm) -> None:
+    """Part 4 of the module docstring: printed, nothing returned."""
+    from free_space_end_rules import report_end_rules
+    from l3d_app.geometry.mesh_io import load_mesh
+    from l3d_app.geometry.point_mesh_distance import point_mesh_distance
+    from l3d_app.render.rgbd import true_depth_maps
+
+    if "levels" not in saved:
+        raise SystemExit(f"{args.run}: free_space.pt has no other levels (run with free_space.save_levels=[...])")
+    truth = (true_depth_maps(load_mesh(str(args.scene / "mesh.ply")), cams, scale=1) * norm).reshape(-1)
+    seen = torch.isfinite(truth)
+    part = torch.full(truth.shape, -1, dtype=torch.long)
+    parts = sorted((args.scene / "parts").glob("*.ply"))
+    if parts:
+        hit = flat_o[seen] + flat_d[seen] * truth[seen, None]
+        part[seen] = torch.stack([torch.cat([point_mesh_distance(h, load_mesh(str(p))).distance
+                                             for h in hit.split(200000)]) for p in parts], 1).argmin(1)
+    print(f"end rules (all {len(cams)} training views, {int(seen.sum())} covered rays):")
+    report_end_rules(args.scene, cams, data.images[data.train], saved, float(conf.free_space.margin),
+                     float(conf.free_space.opacity), truth, part, tray_floor(args.scene, flat_o, flat_d, truth),
+                     flat_o, flat_d)
 
 
 def stretch_ends_behind(args, conf, data, cams, saved, load_mesh, true_depth_maps, camera_rays) -> None:

@@ -64,6 +64,22 @@ def test_free_distance_of_a_constant_fog_and_of_a_wall():
     assert math.isinf(float(wall[3]))
 
 
+def test_several_levels_read_off_one_render_match_one_level_each():
+    est = StratifiedEstimator(400, scene_box=BOX)
+    o = torch.tensor([[-3.0, 0.0, 0.0], [-3.0, 0.2, 0.1], [0.5, -3.0, 0.0], [-3.0, 5.0, 0.0]])
+    d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    field = _field(lambda p: 2.0 + 3.0 * p[:, 0].clamp_min(0))     # density rising along +x
+    levels = [0.05, 0.3, 0.9]
+    both = free_distances(field, est, o, d, levels, chunk=3)       # chunks split the rays
+    assert both.shape == (4, 3)
+    for k, level in enumerate(levels):
+        assert torch.equal(both[:, k], free_distances(field, est, o, d, level)), level
+    # constant density 2 on the ray along +y at x = 0.5 is 2 + 1.5: opacity 1 - exp(-3.5 s) reaches each level
+    want = torch.tensor([2.0 + math.log(1 / (1 - x)) / 3.5 for x in levels])
+    torch.testing.assert_close(both[2], want, atol=2.0 / 400, rtol=0)
+    assert torch.isinf(both[3]).all()
+
+
 def test_free_segments_follow_the_box_and_the_margin():
     o = torch.tensor([[-3.0, 0.0, 0.0], [-3.0, 0.0, 0.0], [-3.0, 0.0, 0.0], [-3.0, 5.0, 0.0]])
     d = torch.tensor([[1.0, 0.0, 0.0]] * 4)

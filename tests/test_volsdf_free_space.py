@@ -24,10 +24,16 @@ def test_free_stretches_end_at_the_true_surface(compose, tmp_path):
 
     cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=20", "eval_every=20",
                   "pretrain_steps=20", "free_space.steps=300", "gif_frames=0", "mesh_resolution=32",
-                  "eval_points=1000", "before_after=false")
+                  "eval_points=1000", "before_after=false", "free_space.save_levels=[0.1,0.3,0.9]")
     run_task(cfg, out_dir=tmp_path / "run")
     saved = torch.load(tmp_path / "run" / "free_space.pt")          # every training pixel (under max_rays)
     dist = saved["distance"]                                         # (R,) along unit rays
+    # save_levels: the same rays' distances at other levels, from the same render (0.3 is the stage's own level)
+    assert saved["levels"].tolist() == pytest.approx([0.1, 0.3, 0.9])
+    lv = saved["level_distances"]
+    assert lv.shape == (dist.shape[0], 3) and torch.equal(lv[:, 1], dist)
+    fin = torch.isfinite(lv[:, 2])
+    assert fin.any() and (lv[fin, 0] <= lv[fin, 1]).all() and (lv[fin, 1] <= lv[fin, 2]).all()
     assert torch.equal(saved["index"], torch.arange(dist.shape[0]))
     data = DATASETS.build(cfg.data)
     cams = data.cameras[data.train]

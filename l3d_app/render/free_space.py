@@ -41,17 +41,23 @@ def opacity_distance(t_starts: torch.Tensor, transmittance: torch.Tensor, alphas
 
 
 @torch.no_grad()
-def free_distances(field, estimator, origins: torch.Tensor, dirs: torch.Tensor, level: float,
+def free_distances(field, estimator, origins: torch.Tensor, dirs: torch.Tensor, level,
                    chunk: int = 16384) -> torch.Tensor:
     """:func:`opacity_distance` of R rays (``origins``, unit ``dirs`` (R, 3)) through a radiance
-    ``field(points, dirs) -> (sigma, rgb)`` sampled by ``estimator`` (no jitter). Returns (R,)."""
+    ``field(points, dirs) -> (sigma, rgb)`` sampled by ``estimator`` (no jitter).
+
+    ``level``: one opacity level in (0, 1] -> (R,); or a sequence of K levels -> (R, K), each
+    column that level's distance, all read off one render of each ray."""
+    levels = [float(x) for x in level] if isinstance(level, (list, tuple)) else [float(level)]
     out = []
     for s in range(0, origins.shape[0], chunk):
         o, d = origins[s:s + chunk], dirs[s:s + chunk]
         t0, t1, idx = estimator.sampling(o, d, perturb=False, field=field)
         r = render_rays(t0, t1, idx, o.shape[0], radiance_fn(field, o, d))
-        out.append(opacity_distance(t0, r["transmittance"], r["alphas"], idx, o.shape[0], level))
-    return torch.cat(out) if out else origins.new_zeros(0)
+        out.append(torch.stack([opacity_distance(t0, r["transmittance"], r["alphas"], idx, o.shape[0], x)
+                                for x in levels], 1))
+    out = torch.cat(out) if out else origins.new_zeros(0, len(levels))
+    return out if isinstance(level, (list, tuple)) else out[:, 0]
 
 
 def near_surface_weight(sdf: torch.Tensor, width: float) -> torch.Tensor:

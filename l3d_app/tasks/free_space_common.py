@@ -9,9 +9,10 @@ segment kept (at most ``free_space.max_rays`` of them, a random subset: the read
 once): from the box entry to where the field's accumulated opacity first reaches
 ``free_space.opacity``, less ``free_space.margin`` (world units)
 (:class:`~l3d_app.render.free_space.FreeRays`). The rays' indices and distances are saved to ``free_space.pt``
-in the run directory, so ``resume=true`` does not fit them again. With a ``time_budget`` the stage
-stops at :func:`stage_deadline`: at most a third of the budget, and at most half of what the budget
-leaves after the task's predicted final work; where that is too short the stage is skipped.
+in the run directory, so ``resume=true`` does not fit them again (with ``free_space.save_levels``, a
+list of other opacity levels, also each ray's distance at those: a diagnosis aid for
+bench/diagnose_free_space.py). With a ``time_budget`` the stage stops at :func:`stage_deadline`:
+at most a third of the budget, and at most half of what the budget leaves after the task's predicted final work; where that is too short the stage is skipped.
 """
 
 from __future__ import annotations
@@ -54,6 +55,10 @@ def check_free_space_config(cfg) -> None:
     if str(cfg.get("loss")) not in ("occupancy", "density", "outside"):
         raise UserError(f"free_space.loss must be occupancy, density or outside, got {cfg.get('loss')!r}")
     require_fade_end(cfg.get("until"), "free_space.until")
+    extra = cfg.get("save_levels")
+    if extra is not None and (isinstance(extra, (str, bytes)) or not hasattr(extra, "__iter__") or any(
+            isinstance(x, bool) or not isinstance(x, (int, float)) or not 0 < x <= 1 for x in extra)):
+        raise UserError(f"free_space.save_levels must be a list of opacity levels in (0, 1], got {extra!r}")
     if float(cfg.opacity) > 1.0:
         raise UserError(f"free_space.opacity must lie in (0, 1] (an accumulated opacity), got {cfg.opacity}")
 
@@ -142,9 +147,13 @@ def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor
         keep = torch.sort(randperm(n, ctx.generator, ctx.device)[: int(cfg.max_rays)])[0]
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator, force=True)
-        dist = free_distances(model, sampler, origins[keep], dirs[keep], float(cfg.opacity), int(cfg.chunk))
-    free = FreeRays.from_distances(origins[keep], dirs[keep], dist, box, float(cfg.margin), keep)
-    torch.save({"index": keep.cpu(), "distance": dist.cpu()}, path)
+        extra = [float(x) for x in (cfg.get("save_levels") or [])]
+        dist = free_distances(model, sampler, origins[keep], dirs[keep], [float(cfg.opacity)] + extra, int(cfg.chunk))
+    free = FreeRays.from_distances(origins[keep], dirs[keep], dist[:, 0], box, float(cfg.margin), keep)
+    saved = {"index": keep.cpu(), "distance": dist[:, 0].cpu()}
+    if extra:   # for diagnosis (bench/diagnose_free_space.py): the same rays' distances at other levels
+        saved.update(levels=torch.tensor(extra), level_distances=dist[:, 1:].cpu())
+    torch.save(saved, path)
     ctx.logger.text("free_space", f"radiance field: {result.step} steps; {len(free)} of {len(keep)} training rays "
                                   f"have a free segment, mean length {float((free.far - free.near).mean()):.3f}; "
                                   f"{time.perf_counter() - t_start:.1f} s")
