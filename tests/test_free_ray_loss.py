@@ -116,3 +116,38 @@ def test_a_sheet_in_front_of_the_end_is_thinned_away():
         loss.backward()
         opt.step()
     assert start > 0.5 and float(c.detach()) < 0 and float(loss.detach()) < 0.2
+
+
+def test_termination_distance_of_two_samples_and_its_gradient_by_hand():
+    """Two samples (alphas a1 at t1, a2 at t2), a miss counted at the exit T: E = a1 t1 + (1 - a1) a2 t2 +
+    (1 - a1)(1 - a2) T - near, written out here in float64; dE/da1 = t1 - a2 t2 - (1 - a2) T < 0 (density at
+    the front lowers it) and dE/da2 = (1 - a1)(t2 - T)."""
+    from l3d_app.losses.free_space import termination_distance
+    from l3d_app.render.volume import composite
+
+    a = torch.tensor([[0.3, 0.6]], dtype=torch.float64, requires_grad=True)
+    t = torch.tensor([[1.0, 1.5]], dtype=torch.float64)
+    near, far = torch.tensor([0.5], dtype=torch.float64), torch.tensor([2.5], dtype=torch.float64)
+    out = composite(torch.zeros(1, 2, 3, dtype=torch.float64), t, alphas=a)
+    e = termination_distance(out["depth"], out["opacity"], near, far)
+    a1, a2, t1, t2, T = 0.3, 0.6, 1.0, 1.5, 2.5
+    want = a1 * t1 + (1 - a1) * a2 * t2 + (1 - a1) * (1 - a2) * T - 0.5
+    torch.testing.assert_close(e, torch.tensor([want], dtype=torch.float64))
+    e.sum().backward()
+    torch.testing.assert_close(a.grad, torch.tensor([[t1 - a2 * t2 - (1 - a2) * T, (1 - a1) * (t2 - T)]],
+                                                    dtype=torch.float64))
+
+
+def test_termination_distance_of_a_uniform_fog_matches_its_integral():
+    """Constant density s over a box stretch of length L: E = (1 - exp(-s L)) / s (the integral of the
+    transmittance), rendered with 2000 stratified samples."""
+    from l3d_app.losses.free_space import termination_distance
+    from l3d_app.render.volume import composite
+
+    s, L, n = 1.7, 2.0, 2000
+    t = (torch.arange(n, dtype=torch.float64) * L / n + 3.0)[None]
+    out = composite(torch.zeros(1, n, 3, dtype=torch.float64), t, sigmas=torch.full((1, n), s, dtype=torch.float64),
+                    deltas=torch.full((1, n), L / n, dtype=torch.float64))
+    e = termination_distance(out["depth"], out["opacity"], torch.tensor([3.0], dtype=torch.float64),
+                             torch.tensor([3.0 + L], dtype=torch.float64))
+    torch.testing.assert_close(e, torch.tensor([(1 - math.exp(-s * L)) / s], dtype=torch.float64), atol=L / n, rtol=0)

@@ -71,6 +71,17 @@ def test_resume_reads_the_saved_stretches_instead_of_fitting_again(tmp_path):
     torch.testing.assert_close(free.far, torch.tensor([3.15, 4.0]))
 
 
+def test_the_front_prior_needs_the_images_alpha():
+    from omegaconf import OmegaConf
+
+    from l3d_app.tasks.free_space_common import fit_free_rays
+
+    o, d = torch.zeros(2, 3), torch.tensor([[1.0, 0.0, 0.0]] * 2)
+    with pytest.raises(UserError, match="free_space.w_front needs the images' alpha"):
+        fit_free_rays(OmegaConf.create({"w_front": 0.1, "margin": 0.05}), None, None, None, o, d, None, "auto", 0.0,
+                      resume=False, covered=None)
+
+
 def test_density_loss_needs_the_volsdf_density(compose):
     import l3d_app.tasks  # noqa: F401
     cfg = compose("task=volsdf", "density=neus", "free_space.steps=10", "free_space.loss=density",

@@ -20,6 +20,11 @@ empty (a point on a training ray before any surface, ``render/free_space.py``): 
 render's own samples accumulate before each ray's free-stretch end. Its gradient falls on the samples
 that carry the ray's weight (a thin sheet in front of the end gets all of it), with no extra points.
 
+``termination_distance(depth, opacity, near, far)``: a radiance field's expected distance along each ray
+to where it stops, a ray that passes counted as stopping at the box exit; its gradient moves density
+towards the camera. On rays the images say end on a surface it is a prior for the front-most density the
+images allow (the free-space stage's ``w_front``: where a uniform face does not pin the depth).
+
 ``occupied_fraction(f, softness) = mean(sigmoid(-f / softness))``: the share of the box inside
 the solid, smoothed over ``softness`` world units; its gradient sits at the boundary
 (``|f|`` within a few ``softness``) and leaves the inside's values alone.
@@ -88,3 +93,17 @@ def opacity_before(weights: torch.Tensor, t_starts: torch.Tensor, ray_indices: t
     """
     inside = (t_starts < ends.index_select(0, ray_indices)).to(weights.dtype)
     return weights.new_zeros(int(n_rays)).index_add(0, ray_indices, weights * inside)
+
+
+def termination_distance(depth: torch.Tensor, opacity: torch.Tensor, near: torch.Tensor,
+                         far: torch.Tensor) -> torch.Tensor:
+    """(R,) expected stopping distance past the box entry: ``depth + (1 - opacity) * far - near``.
+
+    Args:
+        depth: (R,) ``sum_i w_i t_i`` of a render (unnormalised, world units along the ray).
+        opacity: (R,) ``sum_i w_i`` in [0, 1].
+        near, far: (R,) the box entry and exit distances of each ray.
+    Returns:
+        (R,) in [0, far - near] when the samples lie in the box: the mean of ``t - near`` over where
+        the ray stops, the light that passes counted at the exit. Lower where density sits nearer."""
+    return depth + (1.0 - opacity) * far - near

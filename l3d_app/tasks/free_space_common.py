@@ -23,9 +23,11 @@ from typing import Optional
 import torch
 
 from l3d_app.errors import UserError
+from l3d_app.losses.free_space import termination_distance
 from l3d_app.registry import MODELS, SAMPLERS
 from l3d_app.render.free_space import FreeRays, free_distances
 from l3d_app.render.radiance import render_field_rays
+from l3d_app.render.samplers import ray_aabb
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import randint, randperm
 from l3d_app.runtime.training import Trainable, train
@@ -38,12 +40,12 @@ def check_free_space_config(cfg) -> None:
     """One line, exit 2, before any data is read: the stage's knobs (``cfg`` = ``free_space``)."""
     named = {f"free_space.{k}": cfg.get(k) for k in ("steps", "auto_steps", "batch_rays", "opacity", "margin",
                                                       "margin_beta", "points", "weight", "ray_weight", "chunk",
-                                                      "max_rays")}
+                                                      "max_rays", "w_front")}
     steps = named["free_space.steps"]
     if steps != "auto" and (isinstance(steps, bool) or not isinstance(steps, (int, float)) or steps < 0):
         raise UserError(f"free_space.steps must be auto or a number >= 0, got {steps!r}")
     require_nonnegative(named, "free_space.auto_steps", "free_space.margin", "free_space.margin_beta",
-                        "free_space.weight", "free_space.ray_weight", "free_space.max_rays")
+                        "free_space.weight", "free_space.ray_weight", "free_space.max_rays", "free_space.w_front")
     require_positive(named, "free_space.batch_rays", "free_space.points", "free_space.chunk", "free_space.opacity")
     if str(cfg.get("proposal")) not in ("uniform", "surface"):
         raise UserError(f"free_space.proposal must be uniform or surface, got {cfg.get('proposal')!r}")
@@ -108,11 +110,19 @@ def stage_deadline(time_budget: float, elapsed: float, eval_seconds: Optional[fl
 
 
 def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor, colors: torch.Tensor,
-                  learn_background, deadline: float, resume: bool) -> Optional[FreeRays]:
+                  learn_background, deadline: float, resume: bool,
+                  covered: Optional[torch.Tensor] = None) -> Optional[FreeRays]:
     """Fit the stage's radiance field to the training rays (``origins``, unit ``dirs``, ``colors``
     (R, 3)) and return their free segments; None when interrupted. ``cfg`` = ``free_space``;
     ``learn_background`` as the task's (one RGB behind the box when the data does not know it);
-    ``deadline``: the task's elapsed seconds where the fit stops (:func:`stage_deadline`; 0: none)."""
+    ``deadline``: the task's elapsed seconds where the fit stops (:func:`stage_deadline`; 0: none);
+    ``covered`` (R,) bool: the images' alpha says the ray ends on a surface (None: unknown), for
+    ``free_space.w_front`` (x the batch's covered rays' mean :func:`termination_distance` over the box
+    diagonal: the front-most density the images allow)."""
+    w_front = float(cfg.get("w_front") or 0.0)
+    if w_front > 0 and covered is None:
+        raise UserError("free_space.w_front needs the images' alpha (RGBA data, e.g. NeRF-synthetic): "
+                        "set free_space.w_front=0")
     path = ctx.path(FILE)
     if resume and path.exists():     # the fitted run's rays and their distances
         saved = torch.load(path, map_location="cpu", weights_only=True)
@@ -128,13 +138,22 @@ def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor
     trainable = Trainable({"field": model, "background": background}, opt, extra={"sampler": sampler},
                           schedulers=scheds)
     n, batch = origins.shape[0], int(cfg.batch_rays)
+    lo, hi = torch.tensor(box[0], device=ctx.device), torch.tensor(box[1], device=ctx.device)
+    diagonal = float((hi - lo).norm())
 
     def step_fn(step: int):
         sampler.update(step, model, ctx.generator)
         idx = randint(0, n, (batch,), ctx.generator, ctx.device)
         out = render_field_rays(model, origins[idx], dirs[idx], sampler, perturb=True, generator=ctx.generator,
                                 background=background["rgb"].clamp(0, 1))
-        return {"loss": ((out["color"] - colors[idx]) ** 2).mean(), "samples_per_ray": out["samples_per_ray"]}
+        logs = {"loss": ((out["color"] - colors[idx]) ** 2).mean(), "samples_per_ray": out["samples_per_ray"]}
+        if w_front > 0:
+            near, far, hit = ray_aabb(origins[idx], dirs[idx], lo, hi)
+            cov = covered[idx] & hit
+            front = (termination_distance(out["depth"], out["opacity"], near, far)[cov].mean() / diagonal
+                     if bool(cov.any()) else out["depth"].sum() * 0.0)
+            logs["loss"], logs["front"] = logs["loss"] + w_front * front, front.detach()
+        return logs
 
     result = train(ctx, trainable, step_fn, int(cfg.steps), desc="free space (radiance field)",
                    time_budget=float(deadline), reserve=0.0,

@@ -275,6 +275,7 @@ def volsdf(cfg, ctx) -> dict:
         before_after.before(ctx, lambda: evaluate(val, int(cfg.val_supersample)))
         before_seconds = time.perf_counter() - t_before
     free, w_carve, w_ray = None, float(fs.weight), float(fs.ray_weight)
+    covered = data.masks[tr].reshape(-1) >= 0.5 if data.masks is not None else None   # the images' alpha
     if int(fs.steps) > 0 and (w_carve > 0 or w_ray > 0):     # what the training rays pass through, from a radiance field
         deadline = stage_deadline(float(cfg.time_budget), ctx.stopwatch.elapsed, before_seconds, evals_after,
                                   reserve)
@@ -290,12 +291,11 @@ def volsdf(cfg, ctx) -> dict:
                                           f"validation {before} x {1 + evals_after:.1f})")
             with ctx.stopwatch.stage("free_space"):
                 free = fit_free_rays(fs, ctx, data, box, flat_o, torch.nn.functional.normalize(flat_d, dim=-1),
-                                     flat_rgb, cfg.learn_background, deadline, resuming)
+                                     flat_rgb, cfg.learn_background, deadline, resuming, covered)
             if free is None:     # interrupted during the stage: nothing trained yet
                 return {"interrupted_in": "free_space"}
     ray_ends = None     # (n_rays,) each training ray's free-stretch end, for free_space.ray_weight
     if free is not None and w_ray > 0:
-        covered = data.masks[tr].reshape(-1) >= 0.5 if data.masks is not None else None
         ray_ends = free.ends_per_ray(n_rays, covered)
 
     cache = getattr(sampler, "cache", None)
