@@ -71,15 +71,55 @@ def test_resume_reads_the_saved_stretches_instead_of_fitting_again(tmp_path):
     torch.testing.assert_close(free.far, torch.tensor([3.15, 4.0]))
 
 
-def test_the_front_prior_needs_the_images_alpha():
+def test_the_front_prior_acts_only_where_the_images_alpha_is_known():
     from omegaconf import OmegaConf
 
-    from l3d_app.tasks.free_space_common import fit_free_rays
+    from l3d_app.tasks.free_space_common import front_weight
 
-    o, d = torch.zeros(2, 3), torch.tensor([[1.0, 0.0, 0.0]] * 2)
-    with pytest.raises(UserError, match="free_space.w_front needs the images' alpha"):
-        fit_free_rays(OmegaConf.create({"w_front": 0.1, "margin": 0.05}), None, None, None, o, d, None, "auto", 0.0,
-                      resume=False, covered=None)
+    cfg = OmegaConf.create({"w_front": 0.01})
+    assert front_weight(cfg, None) == 0.0                       # RGB data: no covered rays, the prior is off
+    assert front_weight(cfg, torch.tensor([True, False])) == 0.01
+    assert front_weight(OmegaConf.create({}), torch.tensor([True])) == 0.0
+
+
+def test_the_front_prior_pulls_the_covered_rays_stretch_ends_forward(compose, tmp_path, monkeypatch):
+    """The built-in scene given masks (its mesh's coverage), 60 stage steps with and without a large
+    w_front: the prior is evaluated once per step and not at all at 0, and the covered rays' stretches end
+    clearly earlier with it (measured when written: median 3.19 -> 2.46 along the ray; the density moved to the front)."""
+    import l3d_app.tasks.free_space_common as stage
+    from l3d_app.registry import DATASETS as registry
+
+    build = registry.build
+
+    def with_masks(cfg):
+        data = build(cfg)
+        data.masks = torch.isfinite(true_depth_maps(data.mesh, data.cameras, scale=1)).float()
+        return data
+
+    monkeypatch.setattr(registry, "build", with_masks)
+    calls = []
+    real = stage.termination_distance
+
+    def spy(depth, opacity, near, far):
+        calls.append(depth.shape[0])
+        return real(depth, opacity, near, far)
+
+    monkeypatch.setattr(stage, "termination_distance", spy)
+    ends = {}
+    for w in (0.0, 2.0):
+        cfg = compose("task=volsdf", *[o for o in TINY if not o.startswith("data.n_train")], "data.n_train=16",
+                      f"data.cache_dir={tmp_path / 'cache'}", "iters=1", "gif_frames=0", "free_space.batch_rays=512",
+                      "free_space.steps=60", f"free_space.w_front={w}", "mesh_resolution=32", "eval_points=1000",
+                      "before_after=false", "w_mask=0")
+        run_task(cfg, out_dir=tmp_path / f"w{w}")
+        ends[w] = torch.load(tmp_path / f"w{w}" / "free_space.pt")["distance"]
+        if w == 0:
+            assert not calls
+    assert len(calls) == 60
+    data = with_masks(cfg.data)
+    cov = (data.masks[data.train] >= 0.5).reshape(-1)
+    fin = torch.isfinite(ends[0.0]) & torch.isfinite(ends[2.0])
+    assert float(ends[2.0][cov & fin].median()) < float(ends[0.0][cov & fin].median()) - 0.05
 
 
 def test_density_loss_needs_the_volsdf_density(compose):

@@ -109,6 +109,12 @@ def stage_deadline(time_budget: float, elapsed: float, eval_seconds: Optional[fl
     return deadline if deadline - elapsed >= minimum else None
 
 
+def front_weight(cfg, covered: Optional[torch.Tensor]) -> float:
+    """``free_space.w_front`` (``cfg`` = ``free_space``) where the images' alpha says which rays end on a
+    surface (``covered`` not None), 0 where it is unknown (RGB captures): the prior has no rays to act on."""
+    return float(cfg.get("w_front") or 0.0) if covered is not None else 0.0
+
+
 def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor, colors: torch.Tensor,
                   learn_background, deadline: float, resume: bool,
                   covered: Optional[torch.Tensor] = None) -> Optional[FreeRays]:
@@ -116,13 +122,12 @@ def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor
     (R, 3)) and return their free segments; None when interrupted. ``cfg`` = ``free_space``;
     ``learn_background`` as the task's (one RGB behind the box when the data does not know it);
     ``deadline``: the task's elapsed seconds where the fit stops (:func:`stage_deadline`; 0: none);
-    ``covered`` (R,) bool: the images' alpha says the ray ends on a surface (None: unknown), for
-    ``free_space.w_front`` (x the batch's covered rays' mean :func:`termination_distance` over the box
-    diagonal: the front-most density the images allow)."""
-    w_front = float(cfg.get("w_front") or 0.0)
-    if w_front > 0 and covered is None:
-        raise UserError("free_space.w_front needs the images' alpha (RGBA data, e.g. NeRF-synthetic): "
-                        "set free_space.w_front=0")
+    ``covered`` (R,) bool: the images' alpha says the ray ends on a surface (None: unknown, and
+    ``free_space.w_front`` is off, logged), for ``free_space.w_front`` (x the batch's covered rays' mean
+    :func:`termination_distance` over the box diagonal: the front-most density the images allow)."""
+    w_front = front_weight(cfg, covered)
+    if float(cfg.get("w_front") or 0.0) > 0 and covered is None:
+        ctx.logger.text("free_space", "w_front: the data has no alpha (which rays end on a surface is unknown): off")
     path = ctx.path(FILE)
     if resume and path.exists():     # the fitted run's rays and their distances
         saved = torch.load(path, map_location="cpu", weights_only=True)
