@@ -114,7 +114,7 @@ def end_rules(args, conf, data, cams, saved, flat_o, flat_d, norm) -> None:
         part[seen] = torch.stack([torch.cat([point_mesh_distance(h, load_mesh(str(p))).distance
                                              for h in hit.split(200000)]) for p in parts], 1).argmin(1)
     print(f"end rules (all {len(cams)} training views, {int(seen.sum())} covered rays):")
-    report_end_rules(args.scene, cams, data.images[data.train], saved, float(conf.free_space.margin),
+    report_end_rules(cams, data.images[data.train], saved, float(conf.free_space.margin),
                      float(conf.free_space.opacity), truth, part, tray_floor(args.scene, flat_o, flat_d, truth),
                      flat_o, flat_d)
 

@@ -59,7 +59,7 @@ def nearest_other_view_ends(cams, origins: torch.Tensor, dirs: torch.Tensor, end
     return out
 
 
-def report_end_rules(scene, cams, images, saved, margin: float, stage_level: float, truth: torch.Tensor,
+def report_end_rules(cams, images, saved, margin: float, stage_level: float, truth: torch.Tensor,
                      part: torch.Tensor, floor, origins: torch.Tensor, dirs: torch.Tensor,
                      tol: float = 0.02, plain: float = 0.02) -> None:
     """Print the rules of the module docstring. ``saved``: free_space.pt with ``levels``;

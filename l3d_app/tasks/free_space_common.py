@@ -12,7 +12,9 @@ once): from the box entry to where the field's accumulated opacity first reaches
 in the run directory, so ``resume=true`` does not fit them again (with ``free_space.save_levels``, a
 list of other opacity levels, also each ray's distance at those: a diagnosis aid for
 bench/diagnose_free_space.py). With a ``time_budget`` the stage stops at :func:`stage_deadline`:
-at most a third of the budget, and at most half of what the budget leaves after the task's predicted final work; where that is too short the stage is skipped.
+at most a third of the budget, and at most half of what the budget leaves after the task's predicted
+final work; where that is too short the stage is skipped. ``free_space.w_front`` adds a front prior to
+the stage's loss on the rays the images' alpha covers (:func:`fit_free_rays`).
 """
 
 from __future__ import annotations
