@@ -96,11 +96,21 @@ def tray_floor(scene: Path, origins: torch.Tensor, dirs: torch.Tensor, truth: to
     return torch.isfinite(truth) & (l1 < 0.35) & (hit[..., 2] < -0.3)
 
 
+def nearest_part(points: torch.Tensor, parts) -> torch.Tensor:
+    """(N,) index into ``parts`` (paths of the scene's ``parts/*.ply``) of the part nearest each of the
+    (N, 3) ``points`` (the true first hits), in chunks of 200k points."""
+    from l3d_app.geometry.mesh_io import load_mesh
+    from l3d_app.geometry.point_mesh_distance import point_mesh_distance
+
+    meshes = [load_mesh(str(p)) for p in parts]
+    return torch.stack([torch.cat([point_mesh_distance(h, m).distance for h in points.split(200000)])
+                        for m in meshes], 1).argmin(1)
+
+
 def end_rules(args, conf, data, cams, saved, flat_o, flat_d, norm) -> None:
     """Part 4 of the module docstring: printed, nothing returned."""
     from free_space_end_rules import report_end_rules
     from l3d_app.geometry.mesh_io import load_mesh
-    from l3d_app.geometry.point_mesh_distance import point_mesh_distance
     from l3d_app.render.rgbd import true_depth_maps
 
     if "levels" not in saved:
@@ -110,9 +120,7 @@ def end_rules(args, conf, data, cams, saved, flat_o, flat_d, norm) -> None:
     part = torch.full(truth.shape, -1, dtype=torch.long)
     parts = sorted((args.scene / "parts").glob("*.ply"))
     if parts:
-        hit = flat_o[seen] + flat_d[seen] * truth[seen, None]
-        part[seen] = torch.stack([torch.cat([point_mesh_distance(h, load_mesh(str(p))).distance
-                                             for h in hit.split(200000)]) for p in parts], 1).argmin(1)
+        part[seen] = nearest_part(flat_o[seen] + flat_d[seen] * truth[seen, None], parts)
     print(f"end rules (all {len(cams)} training views, {int(seen.sum())} covered rays):")
     report_end_rules(cams, data.images[data.train], saved, float(conf.free_space.margin),
                      float(conf.free_space.opacity), truth, part, tray_floor(args.scene, flat_o, flat_d, truth),
@@ -121,8 +129,6 @@ def end_rules(args, conf, data, cams, saved, flat_o, flat_d, norm) -> None:
 
 def stretch_ends_behind(args, conf, data, cams, saved, load_mesh, true_depth_maps, camera_rays) -> None:
     """Part 3 of the module docstring: printed, nothing returned."""
-    from l3d_app.geometry.point_mesh_distance import point_mesh_distance
-
     views = torch.arange(0, len(cams), args.every)
     hw = cams.height * cams.width
     origins, dirs = camera_rays(cams[views], normalize=False)
@@ -138,7 +144,7 @@ def stretch_ends_behind(args, conf, data, cams, saved, load_mesh, true_depth_map
     if not parts:
         return
     hit = (origins.reshape(-1, 3) + dirs.reshape(-1, 3) / norm[:, None] * torch.nan_to_num(truth, posinf=0.0)[:, None])[seen]
-    part = torch.stack([point_mesh_distance(hit, load_mesh(str(p))).distance for p in parts], 1).argmin(1)
+    part = nearest_part(hit, parts)
     behind = (end > truth + 0.02)[seen]
     print("  by > 0.02, per object: " + ", ".join(f"{p.stem} {float(behind[part == k].float().mean()):.3f} "
                                                    f"({int((part == k).sum())} rays)" for k, p in enumerate(parts)))
