@@ -23,6 +23,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from l3d_app.render.free_space import nearest_other_view_ends
+
 
 def plain_texture(images: torch.Tensor, window: int = 5) -> torch.Tensor:
     """(V, H, W, 3) images in [0, 1] -> (V, H, W) colour standard deviation over a ``window`` x
@@ -32,31 +34,6 @@ def plain_texture(images: torch.Tensor, window: int = 5) -> torch.Tensor:
     mean = F.avg_pool2d(x, window, 1, window // 2, count_include_pad=False)
     mean_sq = F.avg_pool2d(x * x, window, 1, window // 2, count_include_pad=False)
     return (mean_sq - mean * mean).clamp_min(0).sqrt().mean(1).to(images.dtype)
-
-
-def nearest_other_view_ends(cams, origins: torch.Tensor, dirs: torch.Tensor, ends: torch.Tensor,
-                            mine: torch.Tensor, tol: float) -> torch.Tensor:
-    """Per ray, the distance along it of the nearest end point of ANOTHER view that projects onto its
-    pixel, if that lies more than ``tol`` in front of its own end ``mine``; +inf otherwise.
-
-    Args:
-        cams: V cameras of H x W pixels. origins, dirs: (V*H*W, 3), unit dirs, view-major.
-        ends: (V*H*W,) distances whose points are projected (+inf: none). mine: (V*H*W,) own ends.
-    """
-    V, hw, W, H = len(cams), cams.height * cams.width, cams.width, cams.height
-    view = torch.arange(V).repeat_interleave(hw)
-    ok = torch.isfinite(ends)
-    pts, pv = origins[ok] + dirs[ok] * ends[ok, None], view[ok]
-    out = torch.full_like(mine, float("inf"))
-    for a in range(V):
-        uv, z = cams[a].project(pts)
-        px, py = uv[0, :, 0].floor().long(), uv[0, :, 1].floor().long()
-        m = (pv != a) & (z[0] > 0) & (px >= 0) & (px < W) & (py >= 0) & (py < H)
-        t = (pts[m] - cams[a].centers()[0]).norm(dim=-1)
-        near = torch.full((hw,), float("inf"), dtype=t.dtype).scatter_reduce(0, py[m] * W + px[m], t, "amin")
-        own = mine[a * hw:(a + 1) * hw]
-        out[a * hw:(a + 1) * hw] = torch.where(near < own - tol, near, torch.full_like(near, float("inf")))
-    return out
 
 
 def report_end_rules(cams, images, saved, margin: float, stage_level: float, truth: torch.Tensor,

@@ -244,10 +244,12 @@ def test_proposal_knobs_are_checked(compose, override, message):
         check_free_space_config(compose("task=volsdf", override).free_space)
 
 
-def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, monkeypatch):
+@pytest.mark.parametrize("cut", ["none", "multi_view"])
+def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, monkeypatch, cut):
     """free_space.ray_weight > 0 (the point loss off, margin_beta 0): every training step hands
     opacity_before the stretch ends of exactly the rays it drew, rebuilt here from the saved
-    free_space.pt and the training rays (-inf where no stretch is known), and its term lowers
+    free_space.pt and the training rays (-inf where no stretch is known; with ray_cut=multi_view
+    cut back by FreeRays.multi_view_cut, which moves some of them), and its term lowers
     the render's opacity before those ends (the run logs it falling)."""
     import l3d_app.tasks.volsdf as volsdf_task
     from l3d_app.render.free_space import FreeRays
@@ -269,7 +271,7 @@ def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, m
     cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=30", "eval_every=30",
                   "pretrain_steps=20", "free_space.steps=60", "free_space.weight=0", "free_space.ray_weight=1",
                   "free_space.margin_beta=0", "gif_frames=0", "mesh_resolution=32", "eval_points=1000",
-                  "before_after=false", "batch_rays=256")
+                  "before_after=false", "batch_rays=256", f"free_space.ray_cut={cut}")
     run_task(cfg, out_dir=tmp_path / "run")
     assert len(calls) == 30
     data = DATASETS.build(cfg.data)
@@ -281,6 +283,10 @@ def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, m
                                    float(cfg.free_space.margin), keep)
     covered = data.masks[data.train].reshape(-1) >= 0.5 if data.masks is not None else None
     want = free.ends_per_ray(o.shape[0], covered)
+    if cut == "multi_view":
+        uncut = want
+        want = free.multi_view_cut(want, data.cameras[data.train], o, d, float(cfg.free_space.margin))
+        assert bool((want < uncut).any())
     for idx, ends, _ in calls:
         torch.testing.assert_close(ends, want[idx])
     assert torch.isfinite(want).float().mean() > 0.5          # most training rays carry a claim

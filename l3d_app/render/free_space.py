@@ -60,6 +60,34 @@ def free_distances(field, estimator, origins: torch.Tensor, dirs: torch.Tensor, 
     return out if isinstance(level, (list, tuple)) else out[:, 0]
 
 
+def nearest_other_view_ends(cams, origins: torch.Tensor, dirs: torch.Tensor, ends: torch.Tensor,
+                            mine: torch.Tensor, tol: float) -> torch.Tensor:
+    """Per ray, the distance along it of the nearest end point of ANOTHER view that projects onto its
+    pixel, if that lies more than ``tol`` in front of its own end ``mine``; +inf otherwise (a free-space
+    violation as depth-map fusion tests it). One projection of all end points per view (V passes).
+
+    Args:
+        cams: V cameras of H x W pixels. origins, dirs: (V*H*W, 3), unit dirs, view-major, pixel
+            (x, y) of view v at ``v*H*W + y*W + x`` (as :func:`~l3d_app.geometry.rays.camera_rays`).
+        ends: (V*H*W,) distances whose points are projected (non-finite: none). mine: (V*H*W,) own ends.
+    """
+    V, hw, W, H = len(cams), cams.height * cams.width, cams.width, cams.height
+    view = torch.arange(V, device=ends.device).repeat_interleave(hw)
+    ok = torch.isfinite(ends)
+    pts, pv = origins[ok] + dirs[ok] * ends[ok, None], view[ok]
+    out = torch.full_like(mine, float("inf"))
+    for a in range(V):
+        uv, z = cams[a].project(pts)
+        px, py = uv[0, :, 0].floor().long(), uv[0, :, 1].floor().long()
+        m = (pv != a) & (z[0] > 0) & (px >= 0) & (px < W) & (py >= 0) & (py < H)
+        t = (pts[m] - cams[a].centers()[0]).norm(dim=-1)
+        near = torch.full((hw,), float("inf"), dtype=t.dtype, device=t.device).scatter_reduce(
+            0, py[m] * W + px[m], t, "amin")
+        own = mine[a * hw:(a + 1) * hw]
+        out[a * hw:(a + 1) * hw] = torch.where(near < own - tol, near, torch.full_like(near, float("inf")))
+    return out
+
+
 def near_surface_weight(sdf: torch.Tensor, width: float) -> torch.Tensor:
     """``exp(-|sdf| / width)`` (same shape as ``sdf``, world units in): up to a constant the
     derivative of VolSDF's ``Psi_beta(-f)`` in ``f`` at ``beta = width``, i.e. where an occupancy or
@@ -110,6 +138,21 @@ class FreeRays:
         if covered is not None and self.open_end is not None:
             far = torch.where(covered[self.index] & self.open_end, torch.full_like(far, float("-inf")), far)
         return ends.index_put_((self.index,), far)
+
+    def multi_view_cut(self, ends: torch.Tensor, cams, origins: torch.Tensor, dirs: torch.Tensor, margin: float,
+                       tol: float = 0.02) -> torch.Tensor:
+        """:meth:`ends_per_ray`'s (V*H*W,) ``ends`` cut back where another training view's stretch
+        stops in front: each ray that became opaque puts its end point (``far + margin``) into every
+        other view (:func:`nearest_other_view_ends`); a ray on whose pixel one lands more than ``tol``
+        in front of its own end now ends at that point + ``tol`` - ``margin``. ``cams``, ``origins``,
+        unit ``dirs``: the V training views' rays in :func:`nearest_other_view_ends`' order (world units)."""
+        if self.index is None or self.open_end is None:
+            raise ValueError("these free rays do not know their training-ray indices (built without index)")
+        surface = torch.full_like(ends, float("inf"))
+        solid = ~self.open_end
+        surface = surface.index_put_((self.index[solid],), self.far[solid] + float(margin))
+        cut = nearest_other_view_ends(cams, origins, dirs, surface, surface - float(margin), float(tol))
+        return torch.minimum(ends, cut + float(tol) - float(margin))
 
     def __len__(self) -> int:
         return int(self.near.shape[0])

@@ -55,7 +55,8 @@ training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.ren
   linearly to 0 at ``free_space.until`` x iters when that is set; ``free_space.ray_weight`` (default 0: off) adds
   that weight x the batch mean of the render's opacity before each ray's own stretch end (the same shortening;
   :func:`~l3d_app.losses.free_space.opacity_before`; a ray the images' alpha covers on which the radiance field
-  never became opaque makes no claim). With a ``time_budget`` the stage
+  never became opaque makes no claim; with ``free_space.ray_cut=multi_view`` an end is cut back where another
+  training view's stretch stops in front of it: :meth:`~l3d_app.render.free_space.FreeRays.multi_view_cut`). With a ``time_budget`` the stage
   gets at most half of what the budget leaves after the final work predicted from the timed "before"
   validation (:func:`~l3d_app.tasks.free_space_common.stage_deadline`), and is skipped (logged,
   ``free_space_skipped`` in the metrics) where that is under 90 s: at 256 px the test views cost
@@ -297,6 +298,11 @@ def volsdf(cfg, ctx) -> dict:
     ray_ends = None     # (n_rays,) each training ray's free-stretch end, for free_space.ray_weight
     if free is not None and w_ray > 0:
         ray_ends = free.ends_per_ray(n_rays, covered)
+        if str(fs.get("ray_cut", "none")) == "multi_view":    # other views' stretches stopping in front
+            with ctx.stopwatch.stage("free_space"):
+                uncut, ray_ends = ray_ends, free.multi_view_cut(
+                    ray_ends, data.cameras[tr], flat_o, torch.nn.functional.normalize(flat_d, dim=-1), float(fs.margin))
+            ctx.logger.text("free_space", f"ray_cut multi_view: {int((ray_ends < uncut).sum())} ray ends cut back")
 
     cache = getattr(sampler, "cache", None)
     half_cell = 0.5 * cache.cell_size if cache is not None else 0.0
