@@ -244,9 +244,12 @@ def test_proposal_knobs_are_checked(compose, override, message):
         check_free_space_config(compose("task=volsdf", override).free_space)
 
 
-@pytest.mark.parametrize("cut", ["none", "multi_view"])
-def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, monkeypatch, cut):
-    """free_space.ray_weight > 0 (the point loss off, margin_beta 0): every training step hands
+@pytest.mark.parametrize("cut, margins", [("none", ("free_space.margin_beta=0",)),
+                                          ("multi_view", ("free_space.margin_beta=0",)),
+                                          ("none", ("free_space.margin_beta=3", "free_space.ray_margin_beta=0"))])
+def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, monkeypatch, cut, margins):
+    """free_space.ray_weight > 0 (the point loss off; no shortening: margin_beta 0, or ray_margin_beta 0
+    replacing a margin_beta of 3 for the ray loss): every training step hands
     opacity_before the stretch ends of exactly the rays it drew, rebuilt here from the saved
     free_space.pt and the training rays (-inf where no stretch is known; with ray_cut=multi_view
     cut back by FreeRays.multi_view_cut, which moves some of them), and its term lowers
@@ -270,7 +273,7 @@ def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, m
     monkeypatch.setattr(volsdf_task, "opacity_before", record_opacity)
     cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=30", "eval_every=30",
                   "pretrain_steps=20", "free_space.steps=60", "free_space.weight=0", "free_space.ray_weight=1",
-                  "free_space.margin_beta=0", "gif_frames=0", "mesh_resolution=32", "eval_points=1000",
+                  *margins, "gif_frames=0", "mesh_resolution=32", "eval_points=1000",
                   "before_after=false", "batch_rays=256", f"free_space.ray_cut={cut}")
     run_task(cfg, out_dir=tmp_path / "run")
     assert len(calls) == 30

@@ -58,6 +58,9 @@ def check_free_space_config(cfg) -> None:
         raise UserError(f"free_space.mix must lie in [0, 1), got {mix!r}")
     if str(cfg.get("loss")) not in ("occupancy", "density", "outside"):
         raise UserError(f"free_space.loss must be occupancy, density or outside, got {cfg.get('loss')!r}")
+    rmb = cfg.get("ray_margin_beta")
+    if rmb is not None and (isinstance(rmb, bool) or not isinstance(rmb, (int, float)) or rmb < 0):
+        raise UserError(f"free_space.ray_margin_beta must be null or a number >= 0, got {rmb!r}")
     if str(cfg.get("ray_cut", "none")) not in ("none", "multi_view"):
         raise UserError(f"free_space.ray_cut must be none or multi_view, got {cfg.get('ray_cut')!r}")
     require_fade_end(cfg.get("until"), "free_space.until")
