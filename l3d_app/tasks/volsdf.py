@@ -55,8 +55,9 @@ training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.ren
   linearly to 0 at ``free_space.until`` x iters when that is set; ``free_space.ray_weight`` (default 0: off) adds
   that weight x the batch mean of the render's opacity before each ray's own stretch end (the same shortening;
   :func:`~l3d_app.losses.free_space.opacity_before`; a ray the images' alpha covers on which the radiance field
-  never became opaque makes no claim; ``free_space.ray_margin_beta``, when set, replaces ``margin_beta`` for it; with ``free_space.ray_cut=multi_view`` an end is cut back where another
-  training view's stretch stops in front of it: :meth:`~l3d_app.render.free_space.FreeRays.multi_view_cut`). With a ``time_budget`` the stage
+  never became opaque makes no claim; ``free_space.ray_margin_beta``, when set, replaces ``margin_beta`` for it;
+  with ``free_space.ray_cut=multi_view`` an end is cut back where another training view's stretch stops in front
+  of it: :meth:`~l3d_app.render.free_space.FreeRays.multi_view_cut`). With a ``time_budget`` the stage
   gets at most half of what the budget leaves after the final work predicted from the timed "before"
   validation (:func:`~l3d_app.tasks.free_space_common.stage_deadline`), and is skipped (logged,
   ``free_space_skipped`` in the metrics) where that is under 90 s: at 256 px the test views cost
@@ -348,7 +349,8 @@ def volsdf(cfg, ctx) -> dict:
         w_now = w_carve * fade
         shorten = float(fs.margin_beta) * transition_width(dens) if float(fs.margin_beta) > 0 else 0.0
         if ray_ends is not None and w_ray * fade > 0:     # the render's own opacity before each ray's stretch end
-            ray_shorten = shorten if fs.get("ray_margin_beta") is None else float(fs.ray_margin_beta) * transition_width(dens)
+            ray_shorten = (shorten if fs.get("ray_margin_beta") is None
+                           else float(fs.ray_margin_beta) * transition_width(dens))
             before = opacity_before(out["weights"], out["t"], out["ray_indices"], ray_ends[idx] - ray_shorten, batch)
             loss, logs["free_ray"] = loss + w_ray * fade * before.mean(), before.mean().detach()
         if free is not None and len(free) and w_now > 0:   # points some training ray passes before any surface
