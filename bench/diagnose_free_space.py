@@ -29,6 +29,9 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
+sys.path.insert(0, str(REPO / "bench"))
+
+from surface_by_part import nearest_part  # noqa: E402  (bench/ is not a package)
 
 
 def main() -> None:
@@ -96,17 +99,6 @@ def tray_floor(scene: Path, origins: torch.Tensor, dirs: torch.Tensor, truth: to
     return torch.isfinite(truth) & (l1 < 0.35) & (hit[..., 2] < -0.3)
 
 
-def nearest_part(points: torch.Tensor, parts) -> torch.Tensor:
-    """(N,) index into ``parts`` (paths of the scene's ``parts/*.ply``) of the part nearest each of the
-    (N, 3) ``points`` (the true first hits), in chunks of 200k points."""
-    from l3d_app.geometry.mesh_io import load_mesh
-    from l3d_app.geometry.point_mesh_distance import point_mesh_distance
-
-    meshes = [load_mesh(str(p)) for p in parts]
-    return torch.stack([torch.cat([point_mesh_distance(h, m).distance for h in points.split(200000)])
-                        for m in meshes], 1).argmin(1)
-
-
 def end_rules(args, conf, data, cams, saved, flat_o, flat_d, norm) -> None:
     """Part 4 of the module docstring: printed, nothing returned."""
     from free_space_end_rules import report_end_rules
@@ -120,7 +112,7 @@ def end_rules(args, conf, data, cams, saved, flat_o, flat_d, norm) -> None:
     part = torch.full(truth.shape, -1, dtype=torch.long)
     parts = sorted((args.scene / "parts").glob("*.ply"))
     if parts:
-        part[seen] = nearest_part(flat_o[seen] + flat_d[seen] * truth[seen, None], parts)
+        part[seen] = nearest_part(flat_o[seen] + flat_d[seen] * truth[seen, None], [load_mesh(str(q)) for q in parts])
     print(f"end rules (all {len(cams)} training views, {int(seen.sum())} covered rays):")
     report_end_rules(cams, data.images[data.train], saved, float(conf.free_space.margin),
                      float(conf.free_space.opacity), truth, part, tray_floor(args.scene, flat_o, flat_d, truth),
@@ -144,7 +136,7 @@ def stretch_ends_behind(args, conf, data, cams, saved, load_mesh, true_depth_map
     if not parts:
         return
     hit = (origins.reshape(-1, 3) + dirs.reshape(-1, 3) / norm[:, None] * torch.nan_to_num(truth, posinf=0.0)[:, None])[seen]
-    part = nearest_part(hit, parts)
+    part = nearest_part(hit, [load_mesh(str(q)) for q in parts])
     behind = (end > truth + 0.02)[seen]
     print("  by > 0.02, per object: " + ", ".join(f"{p.stem} {float(behind[part == k].float().mean()):.3f} "
                                                    f"({int((part == k).sum())} rays)" for k, p in enumerate(parts)))
