@@ -244,12 +244,12 @@ def test_proposal_knobs_are_checked(compose, override, message):
         check_free_space_config(compose("task=volsdf", override).free_space)
 
 
-@pytest.mark.parametrize("cut, margins", [("none", ("free_space.margin_beta=0",)),
-                                          ("multi_view", ("free_space.margin_beta=0",)),
+@pytest.mark.parametrize("cut, margins", [("none", ("free_space.margin_beta=0", "free_space.ray_margin_beta=null")),
+                                          ("multi_view", ("free_space.margin_beta=0", "free_space.ray_margin_beta=null")),
                                           ("none", ("free_space.margin_beta=3", "free_space.ray_margin_beta=0"))])
 def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, monkeypatch, cut, margins):
-    """free_space.ray_weight > 0 (the point loss off; no shortening: margin_beta 0, or ray_margin_beta 0
-    replacing a margin_beta of 3 for the ray loss): every training step hands
+    """free_space.ray_weight > 0 (the point loss off; no shortening: margin_beta 0 with ray_margin_beta
+    null, which falls back to it, or ray_margin_beta 0 replacing a margin_beta of 3): every training step hands
     opacity_before the stretch ends of exactly the rays it drew, rebuilt here from the saved
     free_space.pt and the training rays (-inf where no stretch is known; with ray_cut=multi_view
     cut back by FreeRays.multi_view_cut, which moves some of them), and its term lowers
