@@ -28,7 +28,6 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
-sys.path.insert(0, str(REPO / "bench"))
 
 
 def scores_by_part(pred, truth, parts: Sequence, samples: int = 20000, seed: int = 0,
@@ -44,8 +43,8 @@ def scores_by_part(pred, truth, parts: Sequence, samples: int = 20000, seed: int
     gen = torch.Generator().manual_seed(int(seed))
     g = sample_surface(truth, int(samples), generator=gen).points.double()
     p = sample_surface(pred, int(samples), generator=gen).points.double()
-    comp = point_mesh_distance(g, pred).distance.double()       # (S,) true sample -> predicted mesh
-    acc = point_mesh_distance(p, truth).distance.double()       # (S,) predicted sample -> true mesh
+    comp = point_mesh_distance(g, pred).distance       # (S,) true sample -> predicted mesh
+    acc = point_mesh_distance(p, truth).distance       # (S,) predicted sample -> true mesh
     g_part, p_part = nearest_part(g, parts), nearest_part(p, parts)
     rows = [_row(str(k), comp[g_part == k], acc[p_part == k], len(p), near, far) for k in range(len(parts))]
     return rows + [_row("all", comp, acc, len(p), near, far)]

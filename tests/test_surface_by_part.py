@@ -8,6 +8,7 @@ import torch
 
 from bench_scripts import load_bench_script
 from l3d_app.geometry.mesh import Mesh
+from l3d_app.geometry.primitives import join
 
 
 def _square(x0: float, z: float) -> Mesh:
@@ -16,20 +17,11 @@ def _square(x0: float, z: float) -> Mesh:
     return Mesh(v, torch.tensor([[0, 1, 2], [0, 2, 3]]))
 
 
-def _union(*meshes: Mesh) -> Mesh:
-    verts, faces, n = [], [], 0
-    for m in meshes:
-        verts.append(m.verts)
-        faces.append(m.faces + n)
-        n += len(m.verts)
-    return Mesh(torch.cat(verts), torch.cat(faces))
-
-
 def _rows():
     mod = load_bench_script("surface_by_part")
     a, b = _square(0.0, 0.0), _square(3.0, 0.0)
-    pred = _union(_square(0.0, 0.03), b, _square(0.0, 0.5))    # part a lifted by 0.03, b exact, a phantom over a
-    return mod.scores_by_part(pred, _union(a, b), [a, b], samples=20000, seed=0)
+    pred = join([_square(0.0, 0.03), b, _square(0.0, 0.5)])    # part a lifted by 0.03, b exact, a phantom over a
+    return mod.scores_by_part(pred, join([a, b]), [a, b], samples=20000, seed=0)
 
 
 def test_each_part_gets_its_own_completeness_and_accuracy():
@@ -52,7 +44,7 @@ def test_each_part_gets_its_own_completeness_and_accuracy():
 def test_a_part_the_prediction_never_comes_near_has_nan_accuracy():
     mod = load_bench_script("surface_by_part")
     a, b = _square(0.0, 0.0), _square(3.0, 0.0)
-    ra, rb, _ = mod.scores_by_part(_square(0.0, 0.0), _union(a, b), [a, b], samples=2000, seed=1)
+    ra, rb, _ = mod.scores_by_part(_square(0.0, 0.0), join([a, b]), [a, b], samples=2000, seed=1)
     assert rb["mesh_samples"] == 0 and math.isnan(rb["mesh_to_truth"]) and math.isnan(rb["phantom"])
     # b's samples (x uniform in [3, 4]) lie x - 1 from a's edge at x = 1: mean 2.5, all farther than 0.02
     assert rb["truth_to_mesh"] == pytest.approx(2.5, abs=0.03) and rb["truth_far"] == 1.0
