@@ -92,6 +92,21 @@ def test_ends_per_ray_map_the_kept_rays_and_drop_a_covered_open_end():
     assert float(ends[2]) == pytest.approx(3.45) and ends[5] == ninf
 
 
+def test_ends_per_ray_extend_moves_only_the_ends_where_the_field_became_opaque():
+    """extend=0.03 (free_space.ray_margin 0.02 against a margin of 0.05): ray 0's end moves from 3.45 to
+    3.48, its distance less 0.02; ray 1's box-exit end (never opaque) stays at 4.0, or -inf when covered;
+    ray 2, dropped at construction (nothing left before its surface), stays -inf."""
+    o = torch.tensor([[-3.0, 0.0, 0.0], [-3.0, 0.2, 0.0], [-3.0, 0.0, 0.3]])
+    d = torch.tensor([[1.0, 0.0, 0.0]] * 3)
+    free = FreeRays.from_distances(o, d, torch.tensor([3.5, math.inf, 2.02]), BOX, margin=0.05,
+                                   index=torch.tensor([0, 1, 2]))
+    ninf = -math.inf
+    torch.testing.assert_close(free.ends_per_ray(4, extend=0.03), torch.tensor([3.48, 4.0, ninf, ninf]))
+    covered = torch.tensor([True, True, False, False])
+    torch.testing.assert_close(free.ends_per_ray(4, covered, extend=0.03), torch.tensor([3.48, ninf, ninf, ninf]))
+    torch.testing.assert_close(free.ends_per_ray(4, covered), torch.tensor([3.45, ninf, ninf, ninf]))
+
+
 def test_a_sheet_in_front_of_the_end_is_thinned_away():
     """An SDF sheet (f = |t - 0.6| - c along the ray: solid within c of depth 0.6, c = 0.01 at the
     start) on a ray known free up to 1.0: moving the sheet inside the stretch would not change the

@@ -38,6 +38,7 @@ def test_nonnegative_accepts_zero_and_positive_and_positive_rejects_zero():
     ("volsdf", "free_space.w_front=-1", "free_space.w_front must be a number >= 0"),
     ("volsdf", "free_space.ray_cut=sideways", "free_space.ray_cut must be none or multi_view"),
     ("volsdf", "free_space.ray_margin_beta=-1", "free_space.ray_margin_beta must be null or a number >= 0"),
+    ("volsdf", "free_space.ray_margin=0.06", r"free_space.ray_margin must be null or a number in \[0, free_space.margin\]"),
     ("volsdf", "free_space.points=0", "free_space.points must be a positive number"),
     ("volsdf", "free_space.loss=inside", "free_space.loss must be occupancy, density or outside"),
     ("volsdf", "free_space.until=0", "free_space.until must be null or lie in"),

@@ -246,10 +246,13 @@ def test_proposal_knobs_are_checked(compose, override, message):
 
 @pytest.mark.parametrize("cut, margins", [("none", ("free_space.margin_beta=0", "free_space.ray_margin_beta=null")),
                                           ("multi_view", ("free_space.margin_beta=0", "free_space.ray_margin_beta=null")),
-                                          ("none", ("free_space.margin_beta=3", "free_space.ray_margin_beta=0"))])
+                                          ("none", ("free_space.margin_beta=3", "free_space.ray_margin_beta=0")),
+                                          ("none", ("free_space.margin_beta=0", "free_space.ray_margin_beta=null",
+                                                    "free_space.ray_margin=0.02"))])
 def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, monkeypatch, cut, margins):
     """free_space.ray_weight > 0 (the point loss off; no shortening: margin_beta 0 with ray_margin_beta
-    null, which falls back to it, or ray_margin_beta 0 replacing a margin_beta of 3): every training step hands
+    null, which falls back to it, or ray_margin_beta 0 replacing a margin_beta of 3; ray_margin 0.02: the ends 0.03
+    further than the stage's margin of 0.05 puts them): every training step hands
     opacity_before the stretch ends of exactly the rays it drew, rebuilt here from the saved
     free_space.pt and the training rays (-inf where no stretch is known; with ray_cut=multi_view
     cut back by FreeRays.multi_view_cut, which moves some of them), and its term lowers
@@ -285,7 +288,9 @@ def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, m
     free = FreeRays.from_distances(o[keep], d[keep], saved["distance"], data.scene_box.tolist(),
                                    float(cfg.free_space.margin), keep)
     covered = data.masks[data.train].reshape(-1) >= 0.5 if data.masks is not None else None
-    want = free.ends_per_ray(o.shape[0], covered)
+    ray_margin = cfg.free_space.get("ray_margin")      # null: the stage's margin
+    extend = 0.0 if ray_margin is None else float(cfg.free_space.margin) - float(ray_margin)
+    want = free.ends_per_ray(o.shape[0], covered, extend)
     if cut == "multi_view":
         uncut = want
         want = free.multi_view_cut(want, data.cameras[data.train], o, d, float(cfg.free_space.margin))

@@ -126,15 +126,23 @@ class FreeRays:
             index = torch.arange(origins.shape[0], device=origins.device)
         return cls(origins[keep], dirs[keep], near[keep], end[keep], index[keep], torch.isinf(distances)[keep])
 
-    def ends_per_ray(self, n_rays: int, covered: Optional[torch.Tensor] = None) -> torch.Tensor:
+    def ends_per_ray(self, n_rays: int, covered: Optional[torch.Tensor] = None,
+                     extend: float = 0.0) -> torch.Tensor:
         """(n_rays,) where each training ray's free segment ends (world units along its unit direction):
         ``far`` for the rays kept here, -inf (nothing known to be free) for the others. ``covered``
         (n_rays,) bool, e.g. the images' alpha >= 0.5: a covered ray on which the radiance field never
-        became opaque gets -inf too (its transparency there contradicts the data: no claim is made)."""
+        became opaque gets -inf too (its transparency there contradicts the data: no claim is made).
+        ``extend`` (world units, at most the margin the stretches were built with): the ends of the
+        stretches that stopped where the field became opaque move this far along their rays (a smaller
+        margin for them); the ends at the box exit stay."""
         if self.index is None:
             raise ValueError("these free rays do not know their training-ray indices (built without index)")
         ends = torch.full((int(n_rays),), float("-inf"), dtype=self.far.dtype, device=self.far.device)
         far = self.far
+        if extend:
+            if self.open_end is None:
+                raise ValueError("these free rays do not know which stretches reached the box exit")
+            far = torch.where(self.open_end, far, far + float(extend))
         if covered is not None and self.open_end is not None:
             far = torch.where(covered[self.index] & self.open_end, torch.full_like(far, float("-inf")), far)
         return ends.index_put_((self.index,), far)

@@ -61,6 +61,10 @@ def check_free_space_config(cfg) -> None:
     rmb = cfg.get("ray_margin_beta")
     if rmb is not None and (isinstance(rmb, bool) or not isinstance(rmb, (int, float)) or rmb < 0):
         raise UserError(f"free_space.ray_margin_beta must be null or a number >= 0, got {rmb!r}")
+    rm = cfg.get("ray_margin")
+    if rm is not None and (isinstance(rm, bool) or not isinstance(rm, (int, float))
+                           or not 0 <= rm <= float(cfg.get("margin", 0))):
+        raise UserError(f"free_space.ray_margin must be null or a number in [0, free_space.margin], got {rm!r}")
     if str(cfg.get("ray_cut", "none")) not in ("none", "multi_view"):
         raise UserError(f"free_space.ray_cut must be none or multi_view, got {cfg.get('ray_cut')!r}")
     require_fade_end(cfg.get("until"), "free_space.until")

@@ -52,10 +52,11 @@ training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.ren
   ``free_space.weight`` x a loss at ``free_space.points`` points drawn on those stretches (uniformly,
   or with ``free_space.proposal=surface`` importance-resampled near the surface, the same expectation; what a
   ray passes through before any surface is empty; :func:`~l3d_app.losses.free_space.free_stretch_loss`), the weight falling
-  linearly to 0 at ``free_space.until`` x iters when that is set; ``free_space.ray_weight`` (default 0: off) adds
+  linearly to 0 at ``free_space.until`` x iters when that is set; ``free_space.ray_weight`` (0.03; 0: off) adds
   that weight x the batch mean of the render's opacity before each ray's own stretch end (the same shortening;
   :func:`~l3d_app.losses.free_space.opacity_before`; a ray the images' alpha covers on which the radiance field
-  never became opaque makes no claim; ``free_space.ray_margin_beta``, when set, replaces ``margin_beta`` for it;
+  never became opaque makes no claim; ``free_space.ray_margin_beta``, when set, replaces ``margin_beta`` for it
+  and ``free_space.ray_margin`` ``margin``;
   with ``free_space.ray_cut=multi_view`` an end is cut back where another training view's stretch stops in front
   of it: :meth:`~l3d_app.render.free_space.FreeRays.multi_view_cut`). With a ``time_budget`` the stage
   gets at most half of what the budget leaves after the final work predicted from the timed "before"
@@ -298,7 +299,9 @@ def volsdf(cfg, ctx) -> dict:
                 return {"interrupted_in": "free_space"}
     ray_ends = None     # (n_rays,) each training ray's free-stretch end, for free_space.ray_weight
     if free is not None and w_ray > 0:
-        ray_ends = free.ends_per_ray(n_rays, covered)
+        ray_margin = fs.get("ray_margin")     # null: the stage's margin; else its own, the ends moved by the difference
+        ray_ends = free.ends_per_ray(n_rays, covered, 0.0 if ray_margin is None
+                                     else float(fs.margin) - float(ray_margin))
         if str(fs.get("ray_cut", "none")) == "multi_view":    # other views' stretches stopping in front
             with ctx.stopwatch.stage("free_space"):
                 uncut, ray_ends = ray_ends, free.multi_view_cut(
