@@ -1,14 +1,15 @@
 """The ray form of known free space (``free_space.ray_weight``): the opacity a render accumulates
 before each ray's free-stretch end, against a naive loop, against the closed form of a VolSDF
 plane (value and gradient in the plane's depth, float64), the training-ray bookkeeping of the
-stretch ends, and a thin sheet in front of the end thinned away by the loss alone."""
+stretch ends, a thin sheet in front of the end thinned away by the loss alone, and ``log_depth``
+(``free_space.ray_loss=log_depth``) against the same closed form and behind an opaque lid."""
 
 import math
 
 import pytest
 import torch
 
-from l3d_app.losses.free_space import opacity_before
+from l3d_app.losses.free_space import MAX_DEPTH, log_depth, opacity_before
 from l3d_app.render.free_space import FreeRays
 from l3d_app.render.rendering import render_rays
 
@@ -32,15 +33,18 @@ def _psi(s, beta):     # the Laplace CDF at s (VolSDF's Psi_beta), written out h
     return torch.where(s <= 0, 0.5 * torch.exp(s / beta), 1 - 0.5 * torch.exp(-s / beta))
 
 
-def _plane_opacity(p, e, alpha, beta):
-    """1 - exp(-integral_0^e alpha Psi_beta(t - p) dt): a ray from t = 0 meets a plane (inside
-    beyond it) head-on at depth p (closed form)."""
+def _plane_depth(p, e, alpha, beta):
+    """integral_0^e alpha Psi_beta(t - p) dt: the optical depth in front of e of a ray from t = 0 that
+    meets a plane (inside beyond it) head-on at depth p (closed form)."""
     if e <= p:
-        depth = 0.5 * alpha * beta * (math.exp((e - p) / beta) - math.exp(-p / beta))
-    else:
-        depth = (0.5 * alpha * beta * (1 - math.exp(-p / beta))
-                 + alpha * ((e - p) - 0.5 * beta * (1 - math.exp(-(e - p) / beta))))
-    return 1 - math.exp(-depth)
+        return 0.5 * alpha * beta * (math.exp((e - p) / beta) - math.exp(-p / beta))
+    return (0.5 * alpha * beta * (1 - math.exp(-p / beta))
+            + alpha * ((e - p) - 0.5 * beta * (1 - math.exp(-(e - p) / beta))))
+
+
+def _plane_opacity(p, e, alpha, beta):
+    """1 - exp(-depth): the opacity in front of e (closed form)."""
+    return 1 - math.exp(-_plane_depth(p, e, alpha, beta))
 
 
 def _rendered_plane(p, alpha, beta, n=100_000, length=2.0):
@@ -105,6 +109,54 @@ def test_ends_per_ray_extend_moves_only_the_ends_where_the_field_became_opaque()
     covered = torch.tensor([True, True, False, False])
     torch.testing.assert_close(free.ends_per_ray(4, covered, extend=0.03), torch.tensor([3.48, ninf, ninf, ninf]))
     torch.testing.assert_close(free.ends_per_ray(4, covered), torch.tensor([3.45, ninf, ninf, ninf]))
+
+
+@pytest.mark.parametrize("p, e", [(1.2, 1.0), (1.0, 1.0), (0.9, 1.0), (0.5, 1.0)])
+def test_log_depth_of_a_plane_gives_the_closed_form_and_its_gradient(p, e):
+    """free_space.ray_loss=log_depth: log(1 + tau) of the rendered plane's opacity in front of e against
+    log(1 + depth) of the closed form, value and d/dp (central difference of it), float64."""
+    alpha, beta = 20.0, 0.05
+    depth = torch.tensor(p, dtype=torch.float64, requires_grad=True)
+    w, t, idx = _rendered_plane(depth, alpha, beta)
+    got = log_depth(opacity_before(w, t, idx, torch.tensor([e], dtype=torch.float64), 1))
+    got.sum().backward()
+    h = 1e-6
+    want = math.log1p(_plane_depth(p, e, alpha, beta))
+    want_grad = (math.log1p(_plane_depth(p + h, e, alpha, beta))
+                 - math.log1p(_plane_depth(p - h, e, alpha, beta))) / (2 * h)
+    assert float(got.detach()) == pytest.approx(want, rel=2e-3, abs=1e-6)
+    assert float(depth.grad) == pytest.approx(want_grad, rel=2e-3, abs=1e-6)
+    assert float(depth.grad) < 0
+
+
+def test_log_depth_does_not_saturate_behind_an_opaque_lid():
+    """A solid whose face lies 0.5 (10 beta, optical depth 10) in front of the end: the opacity loss's
+    gradient in the face's depth is ~alpha exp(-10), so 100 SGD steps hardly move it (< 0.01);
+    log_depth's is ~alpha / 11, and the same steps push the face to within 2 beta of the end."""
+    alpha, beta, e = 20.0, 0.05, 1.0
+    end = torch.tensor([e], dtype=torch.float64)
+    moved = {}
+    for name, term in (("opacity", lambda o: o), ("log_depth", log_depth)):
+        p = torch.nn.Parameter(torch.tensor(0.5, dtype=torch.float64))
+        opt = torch.optim.SGD([p], lr=0.01)
+        for _ in range(100):
+            opt.zero_grad()
+            w, t, idx = _rendered_plane(p, alpha, beta, n=20_000)
+            term(opacity_before(w, t, idx, end, 1)).sum().backward()
+            opt.step()
+        moved[name] = float(p.detach())
+    assert moved["opacity"] - 0.5 < 0.01
+    assert moved["log_depth"] > e - 2 * beta
+
+
+def test_log_depth_stops_at_max_depth_with_no_gradient_in_float32():
+    o = torch.tensor([0.0, 1e-4, 1.0 - 1e-7, 1.0, 1.0 + 1e-6], requires_grad=True)
+    log_depth(o).sum().backward()
+    v = log_depth(o.detach())
+    assert torch.isfinite(v).all() and torch.isfinite(o.grad).all()
+    assert float(v[0]) == 0 and float(v[1]) == pytest.approx(1e-4, rel=1e-3)        # the opacity near 0
+    torch.testing.assert_close(v[2:], torch.full((3,), math.log1p(MAX_DEPTH)), rtol=1e-3, atol=0)
+    assert float(o.grad[1]) == pytest.approx(1.0, rel=1e-3) and (o.grad[2:] == 0).all()
 
 
 def test_a_sheet_in_front_of_the_end_is_thinned_away():

@@ -37,6 +37,7 @@ def test_nonnegative_accepts_zero_and_positive_and_positive_rejects_zero():
     ("volsdf", "free_space.save_levels=[0.1,1.5]", "free_space.save_levels must be a list of opacity levels"),
     ("volsdf", "free_space.w_front=-1", "free_space.w_front must be a number >= 0"),
     ("volsdf", "free_space.ray_cut=sideways", "free_space.ray_cut must be none or multi_view"),
+    ("volsdf", "free_space.ray_loss=depth", "free_space.ray_loss must be opacity or log_depth"),
     ("volsdf", "free_space.ray_margin_beta=-1", "free_space.ray_margin_beta must be null or a number >= 0"),
     ("volsdf", "free_space.ray_margin=0.06", r"free_space.ray_margin must be null or a number in \[0, free_space.margin\]"),
     ("volsdf", "free_space.points=0", "free_space.points must be a positive number"),

@@ -248,11 +248,14 @@ def test_proposal_knobs_are_checked(compose, override, message):
                                           ("multi_view", ("free_space.margin_beta=0", "free_space.ray_margin_beta=null")),
                                           ("none", ("free_space.margin_beta=3", "free_space.ray_margin_beta=0")),
                                           ("none", ("free_space.margin_beta=0", "free_space.ray_margin_beta=null",
-                                                    "free_space.ray_margin=0.02"))])
+                                                    "free_space.ray_margin=0.02")),
+                                          ("none", ("free_space.margin_beta=0", "free_space.ray_margin_beta=null",
+                                                    "free_space.ray_loss=log_depth"))])
 def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, monkeypatch, cut, margins):
     """free_space.ray_weight > 0 (the point loss off; no shortening: margin_beta 0 with ray_margin_beta
     null, which falls back to it, or ray_margin_beta 0 replacing a margin_beta of 3; ray_margin 0.02: the ends 0.03
-    further than the stage's margin of 0.05 puts them): every training step hands
+    further than the stage's margin of 0.05 puts them; ray_loss=log_depth: each step's opacities then go
+    through log_depth, and only there): every training step hands
     opacity_before the stretch ends of exactly the rays it drew, rebuilt here from the saved
     free_space.pt and the training rays (-inf where no stretch is known; with ray_cut=multi_view
     cut back by FreeRays.multi_view_cut, which moves some of them), and its term lowers
@@ -271,15 +274,25 @@ def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, m
         out = opacity_before(weights, t, ray_indices, ends, n_rays)
         calls.append((drawn[-1].clone(), ends.detach().clone(), float(out.detach().mean())))
         return out
+    logged = []
+
+    def record_log_depth(opacity):
+        logged.append(opacity.detach().clone())
+        return log_depth(opacity)
     randint_before, opacity_before = volsdf_task.randint, volsdf_task.opacity_before
+    log_depth = volsdf_task.log_depth
     monkeypatch.setattr(volsdf_task, "randint", record_randint)
     monkeypatch.setattr(volsdf_task, "opacity_before", record_opacity)
+    monkeypatch.setattr(volsdf_task, "log_depth", record_log_depth)
     cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=30", "eval_every=30",
                   "pretrain_steps=20", "free_space.steps=60", "free_space.weight=0", "free_space.ray_weight=1",
                   *margins, "gif_frames=0", "mesh_resolution=32", "eval_points=1000",
                   "before_after=false", "batch_rays=256", f"free_space.ray_cut={cut}")
     run_task(cfg, out_dir=tmp_path / "run")
     assert len(calls) == 30
+    assert len(logged) == (30 if cfg.free_space.ray_loss == "log_depth" else 0)
+    for (_, _, mean), opacity in zip(calls, logged):
+        assert float(opacity.mean()) == pytest.approx(mean)
     data = DATASETS.build(cfg.data)
     o, d = camera_rays(data.cameras[data.train], normalize=False)
     o, d = o.reshape(-1, 3), torch.nn.functional.normalize(d.reshape(-1, 3), dim=-1)

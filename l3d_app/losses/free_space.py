@@ -95,6 +95,26 @@ def opacity_before(weights: torch.Tensor, t_starts: torch.Tensor, ray_indices: t
     return weights.new_zeros(int(n_rays)).index_add(0, ray_indices, weights * inside)
 
 
+MAX_DEPTH = 13.8
+"""The optical depth at which :func:`log_depth` stops (opacity 1 - 1e-6): float32 keeps 1 - opacity there."""
+
+
+def log_depth(opacity: torch.Tensor) -> torch.Tensor:
+    """(R,) ``log(1 + tau)`` of the optical depth ``tau = -log(1 - opacity)`` an opacity stands for.
+
+    A loss on the opacity in front of a ray's end saturates behind an opaque sheet (its gradient in
+    the sheet's depth falls as ``1 - opacity``, i.e. ``exp(-tau)``); on ``log(1 + tau)`` it falls as
+    ``1 / (1 + tau)`` only. Near 0 both are the opacity to first order.
+
+    Args:
+        opacity: (R,) in [0, 1] (e.g. :func:`opacity_before`).
+    Returns:
+        (R,) >= 0; at opacities above ``1 - exp(-MAX_DEPTH)`` the value of ``MAX_DEPTH`` and no gradient.
+    """
+    top = 1.0 - torch.exp(torch.tensor(-MAX_DEPTH, dtype=torch.float64)).item()
+    return torch.log1p(-torch.log1p(-opacity.clamp(min=0.0, max=top)))
+
+
 def termination_distance(depth: torch.Tensor, opacity: torch.Tensor, near: torch.Tensor,
                          far: torch.Tensor) -> torch.Tensor:
     """(R,) expected stopping distance past the box entry: ``depth + (1 - opacity) * far - near``.

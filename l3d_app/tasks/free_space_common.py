@@ -65,6 +65,8 @@ def check_free_space_config(cfg) -> None:
     if rm is not None and (isinstance(rm, bool) or not isinstance(rm, (int, float))
                            or not 0 <= rm <= float(cfg.get("margin", 0))):
         raise UserError(f"free_space.ray_margin must be null or a number in [0, free_space.margin], got {rm!r}")
+    if str(cfg.get("ray_loss", "opacity")) not in ("opacity", "log_depth"):
+        raise UserError(f"free_space.ray_loss must be opacity or log_depth, got {cfg.get('ray_loss')!r}")
     if str(cfg.get("ray_cut", "none")) not in ("none", "multi_view"):
         raise UserError(f"free_space.ray_cut must be none or multi_view, got {cfg.get('ray_cut')!r}")
     require_fade_end(cfg.get("until"), "free_space.until")

@@ -56,7 +56,8 @@ training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.ren
   that weight x the batch mean of the render's opacity before each ray's own stretch end (the same shortening;
   :func:`~l3d_app.losses.free_space.opacity_before`; a ray the images' alpha covers on which the radiance field
   never became opaque makes no claim; ``free_space.ray_margin_beta``, when set, replaces ``margin_beta`` for it
-  and ``free_space.ray_margin`` ``margin``;
+  and ``free_space.ray_margin`` ``margin``; ``free_space.ray_loss=log_depth`` takes ``log(1 + tau)`` of that
+  opacity's optical depth instead (:func:`~l3d_app.losses.free_space.log_depth`: no saturation behind a lid);
   with ``free_space.ray_cut=multi_view`` an end is cut back where another training view's stretch stops in front
   of it: :meth:`~l3d_app.render.free_space.FreeRays.multi_view_cut`). With a ``time_budget`` the stage
   gets at most half of what the budget leaves after the final work predicted from the timed "before"
@@ -101,7 +102,7 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.rays import camera_rays, pixel_axes
 from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
 from l3d_app.losses.free_space import (fade_to_zero, free_stretch_loss, occupied_fraction, occupied_volume,
-                                       opacity_before)
+                                       log_depth, opacity_before)
 from l3d_app.losses.occupancy import coverage_bce
 from l3d_app.losses.patch_consistency import PatchConsistency, surface_crossing
 from l3d_app.metrics.surface_scores import surface_scores
@@ -355,6 +356,8 @@ def volsdf(cfg, ctx) -> dict:
             ray_shorten = (shorten if fs.get("ray_margin_beta") is None
                            else float(fs.ray_margin_beta) * transition_width(dens))
             before = opacity_before(out["weights"], out["t"], out["ray_indices"], ray_ends[idx] - ray_shorten, batch)
+            if str(fs.get("ray_loss", "opacity")) == "log_depth":     # does not saturate behind an opaque sheet
+                before = log_depth(before)
             loss, logs["free_ray"] = loss + w_ray * fade * before.mean(), before.mean().detach()
         if free is not None and len(free) and w_now > 0:   # points some training ray passes before any surface
             if str(fs.proposal) == "surface":     # the same loss, its points drawn where it has a gradient
