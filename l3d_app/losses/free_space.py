@@ -19,6 +19,8 @@ empty (a point on a training ray before any surface, ``render/free_space.py``): 
 ``opacity_before(weights, t, ray_indices, ends, n_rays)``: the same claim on whole rays: the opacity a
 render's own samples accumulate before each ray's free-stretch end. Its gradient falls on the samples
 that carry the ray's weight (a thin sheet in front of the end gets all of it), with no extra points.
+``log_depth(opacity)``: ``log(1 + tau)`` of the optical depth that opacity stands for, a form of it that
+does not saturate behind an opaque lid (``free_space.ray_loss=log_depth``).
 
 ``termination_distance(depth, opacity, near, far)``: a radiance field's expected distance along each ray
 to where it stops, a ray that passes counted as stopping at the box exit; its gradient moves density
@@ -32,6 +34,7 @@ the solid, smoothed over ``softness`` world units; its gradient sits at the boun
 
 from __future__ import annotations
 
+import math
 from typing import Optional
 
 import torch
@@ -111,7 +114,7 @@ def log_depth(opacity: torch.Tensor) -> torch.Tensor:
     Returns:
         (R,) >= 0; at opacities above ``1 - exp(-MAX_DEPTH)`` the value of ``MAX_DEPTH`` and no gradient.
     """
-    top = 1.0 - torch.exp(torch.tensor(-MAX_DEPTH, dtype=torch.float64)).item()
+    top = 1.0 - math.exp(-MAX_DEPTH)
     return torch.log1p(-torch.log1p(-opacity.clamp(min=0.0, max=top)))
 
 
