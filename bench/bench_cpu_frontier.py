@@ -9,12 +9,12 @@ functions as they are):
 
 * ``nerf``: :class:`~l3d_app.models.nerf.GridField` (train_nerf's default ``model=grid_field``)
   on ``--nerf-rays`` x ``--nerf-samples`` points, composited along the rays
-  (:func:`~l3d_app.render.volume.composite`), L2 colour loss; backward to every parameter.
+  (:func:`~l3d_app.render.volume.renderer.composite`), L2 colour loss; backward to every parameter.
 * ``sdf``: :class:`~l3d_app.models.sdf_grid.SDFGridField` (volsdf's default) ``sdf_rgb_grad``
   (SDF, colour and the exact spatial gradient) on ``--sdf-rays`` x ``--sdf-samples`` fine
   samples, VolSDF optical depth at beta 0.01 + composite, L2 colour loss, plus the eikonal loss
   on the same gradients and on ``--sdf-eik`` extra points; backward to every parameter.
-* ``gauss``: :func:`~l3d_app.render.gaussians.rasterize_gaussians` of ``--gaussians`` splats
+* ``gauss``: :func:`~l3d_app.render.gaussians.rasterize.rasterize_gaussians` of ``--gaussians`` splats
   (SH degree 3, isotropic scales from the point density, opacity 0.1-0.6) into one
   ``--size`` x ``--size`` view (tile 4, gs_train's default), L1 loss; backward to every parameter.
 
@@ -62,9 +62,9 @@ from l3d_app.geometry.cameras import look_at_cameras  # noqa: E402
 from l3d_app.losses.eikonal import eikonal_loss  # noqa: E402
 from l3d_app.models.nerf import GridField  # noqa: E402
 from l3d_app.models.sdf_grid import SDFGridField  # noqa: E402
-from l3d_app.render.gaussians import rasterize_gaussians  # noqa: E402
-from l3d_app.render.densities import volsdf_density  # noqa: E402
-from l3d_app.render.volume import composite  # noqa: E402
+from l3d_app.render.gaussians.rasterize import rasterize_gaussians  # noqa: E402
+from l3d_app.render.sdf.densities import volsdf_density  # noqa: E402
+from l3d_app.render.volume.renderer import composite  # noqa: E402
 from l3d_app.runtime.precision import autocast, maybe_compile  # noqa: E402
 
 BOX = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))

@@ -118,7 +118,7 @@ def bench_raster(args) -> dict:
 
     from l3d_app.data.nerf_formats import truck
     from l3d_app.models.gaussians import init_from_points
-    from l3d_app.render.gaussians import rasterize_gaussians
+    from l3d_app.render.gaussians.rasterize import rasterize_gaussians
 
     torch.set_num_threads(args.threads)
     root = Path(args.root)

@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a check
 
 from l3d_app.geometry.cameras import Cameras, look_at
 from l3d_app.geometry.mesh import Mesh
-from l3d_app.render.mesh_renderer import MeshRenderer
+from l3d_app.render.mesh.renderer import MeshRenderer
 
 COW = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "cow" / "cow.obj"
 

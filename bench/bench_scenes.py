@@ -134,7 +134,7 @@ def scores_of_mesh(pred, scene: Path) -> Dict[str, float]:
     from l3d_app.data.nerf_formats import blender
     from l3d_app.geometry.mesh_io import load_mesh
     from l3d_app.metrics.surface_scores import surface_scores
-    from l3d_app.render.rgbd import true_depth_maps
+    from l3d_app.render.mesh.rgbd import true_depth_maps
 
     truth = load_mesh(str(scene / "mesh.ply"))
     data = blender(root=str(scene), background="white")

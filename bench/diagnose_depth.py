@@ -82,7 +82,7 @@ def nearest_part(part_depths: torch.Tensor, truth_depth: torch.Tensor) -> torch.
 def main() -> None:
     from l3d_app.data.nerf_formats import blender
     from l3d_app.geometry.mesh_io import load_mesh
-    from l3d_app.render.rgbd import true_depth_maps
+    from l3d_app.render.mesh.rgbd import true_depth_maps
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path)

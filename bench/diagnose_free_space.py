@@ -46,9 +46,9 @@ def main() -> None:
     from volsdf_run import load_sdf_field
     from l3d_app.geometry.mesh_io import load_mesh
     from l3d_app.geometry.rays import camera_rays
-    from l3d_app.render.densities import laplace_cdf
-    from l3d_app.render.free_space import FreeRays
-    from l3d_app.render.rgbd import true_depth_maps
+    from l3d_app.render.sdf.densities import laplace_cdf
+    from l3d_app.render.volume.free_space import FreeRays
+    from l3d_app.render.mesh.rgbd import true_depth_maps
 
     torch.set_num_threads(args.threads)
     conf, data, model = load_sdf_field(args.run, args.scene, ("free_space.pt", "mesh.ply"))
@@ -103,7 +103,7 @@ def end_rules(args, conf, data, cams, saved, flat_o, flat_d, norm) -> None:
     """Part 4 of the module docstring: printed, nothing returned."""
     from free_space_end_rules import report_end_rules
     from l3d_app.geometry.mesh_io import load_mesh
-    from l3d_app.render.rgbd import true_depth_maps
+    from l3d_app.render.mesh.rgbd import true_depth_maps
 
     if "levels" not in saved:
         raise SystemExit(f"{args.run}: free_space.pt has no other levels (run with free_space.save_levels=[...])")

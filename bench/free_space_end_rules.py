@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from l3d_app.render.free_space import nearest_other_view_ends
+from l3d_app.render.volume.free_space import nearest_other_view_ends
 
 
 def plain_texture(images: torch.Tensor, window: int = 5) -> torch.Tensor:

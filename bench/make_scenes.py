@@ -375,7 +375,7 @@ def check_scene(folder: Path) -> Dict[str, float]:
     drawn by l3d_app's rasteriser through the written cameras (tests the camera conversion)."""
     from l3d_app.data.nerf_formats import blender
     from l3d_app.geometry.mesh_io import load_mesh
-    from l3d_app.render.rasterize import rasterize
+    from l3d_app.render.mesh.rasterize import rasterize
 
     import imageio.v2 as imageio
 

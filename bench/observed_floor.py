@@ -4,7 +4,7 @@ unseen space empty scores on each scene.
     python bench/observed_floor.py [--root outputs/.cache/bench_scenes] [--scenes dev ground ...] [--threads 2]
 
 Each scene's TRUE mesh is cut to the faces some training camera sees
-(:func:`l3d_app.render.mesh_visibility.cull_unseen_faces`, the culling volsdf applies to its own meshes
+(:func:`l3d_app.render.mesh.visibility.cull_unseen_faces`, the culling volsdf applies to its own meshes
 with ``mesh_cull=true``, here at the surface metrics' depth tolerance 0.01) and scored as a method's mesh
 is (``bench_scenes.scores_of_mesh``); printed: the true area cut (%), whole-surface chamfer (% of the diagonal),
 F1@0.05 whole, F1@0.02 observed, phantom area (%). The observed scores are ~perfect by construction; the
@@ -34,7 +34,7 @@ TOLERANCE = 0.01
 
 def observed_truth(truth, cameras):
     """``truth`` (a Mesh) without the faces none of ``cameras`` sees, and the share of its area cut (0..1)."""
-    from l3d_app.render.mesh_visibility import cull_unseen_faces
+    from l3d_app.render.mesh.visibility import cull_unseen_faces
 
     return cull_unseen_faces(truth, cameras, tolerance=TOLERANCE)
 

@@ -13,7 +13,7 @@ backward pass and one Adam step of all parameters (``fused`` as gs_train builds 
 ``foreach`` and single-tensor forms for comparison). Wall milliseconds per step, the mean over all timed
 steps after two warm-up steps. ``--repo`` times another checkout's code with this script
 (e.g. an older commit, for a before/after table): the stage functions are looked up by name
-in its ``l3d_app.render.gaussians``.
+in its ``l3d_app.render.gaussians.rasterize``.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def main(argv=None) -> None:
     sys.path.insert(0, str(Path(args.repo).resolve()))
     import torch
 
-    import l3d_app.render.gaussians as G
+    import l3d_app.render.gaussians.rasterize as G
     from l3d_app.data.nerf_formats import blender
     from l3d_app.metrics.image import ssim
     from l3d_app.models.gaussians import init_from_points

@@ -25,7 +25,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=8)
     args = ap.parse_args()
     import torch
-    from l3d_app.render.sdf_cache import SDFGridCache
+    from l3d_app.render.sdf.cache import SDFGridCache
 
     torch.set_num_threads(args.threads)
     _, data, model = load_sdf_field(args.run, args.scene)

@@ -1,5 +1,5 @@
 """Test support: real spherical harmonics in the 3DGS convention, built independently of
-``l3d_app.render.sh`` (no shared constants or polynomials).
+``l3d_app.render.gaussians.sh`` (no shared constants or polynomials).
 
 Convention (the one of 3DGS / gsplat, documented and checked in test_sh_reference.py):
 with the complex ``Y_l^m`` INCLUDING the Condon-Shortley phase ``(-1)^m`` (as

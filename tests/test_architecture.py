@@ -142,7 +142,7 @@ def test_known_list_names_real_modules():
 def test_the_checker_sees_imports_inside_functions_and_relative_ones(tmp_path, monkeypatch):
     """A lazy upward import hidden in a function, and a relative one, are both caught."""
     probe = tmp_path / "probe.py"
-    probe.write_text("def f():\n    from l3d_app.render.mesh_renderer import MeshRenderer\n"
+    probe.write_text("def f():\n    from l3d_app.render.mesh.renderer import MeshRenderer\n"
                      "from ..tasks import common\n")
     monkeypatch.setitem(MODULES, "l3d_app.geometry.probe", probe)
     imports_of.cache_clear()
@@ -150,7 +150,7 @@ def test_the_checker_sees_imports_inside_functions_and_relative_ones(tmp_path, m
         bad = set(violations("layers", "l3d_app.geometry.probe"))
     finally:
         imports_of.cache_clear()
-    assert {"l3d_app.render.mesh_renderer", "l3d_app.tasks", "l3d_app.tasks.common"} <= bad
+    assert {"l3d_app.render.mesh.renderer", "l3d_app.tasks", "l3d_app.tasks.common"} <= bad
 
 
 def test_omegaconf_is_not_imported_by_library_code():
@@ -173,7 +173,7 @@ REGISTERING = sorted(m for m in MODULES if layer_of(m) not in ("base",) and _reg
 
 def test_some_modules_register():
     assert {"l3d_app.tasks.render360", "l3d_app.data.scenes", "l3d_app.geometry.camera_paths",
-            "l3d_app.render.mesh_renderer"} <= set(REGISTERING)
+            "l3d_app.render.mesh.renderer"} <= set(REGISTERING)
 
 
 @pytest.mark.parametrize("module", REGISTERING)

@@ -31,7 +31,7 @@ def test_box_cameras_match_the_readme():
 def test_ground_truth_box_reproduces_the_images():
     data = load_box_images(str(course_data("box")))
     from l3d_app.geometry.rays import camera_rays
-    from l3d_app.render.volume import render_rays_chunked
+    from l3d_app.render.volume.renderer import render_rays_chunked
     model = SDFBox(TRUE_CENTER, TRUE_SIZE)
     o, d = camera_rays(data.cameras)
     o, d = o[:, ::8, ::8], d[:, ::8, ::8]

@@ -761,7 +761,7 @@ def test_pixel_axes_move_a_ray_exactly_by_sub_pixel_steps():
 
 
 def test_supersampled_rays_hit_the_sub_pixel_centres_of_a_finer_camera():
-    from l3d_app.render.mesh_renderer import scale_cameras
+    from l3d_app.render.mesh.renderer import scale_cameras
 
     cams = look_at_cameras(3.0, torch.tensor([25.0]), torch.tensor([60.0]), 50.0, 8).to(dtype=torch.float64)
     o, d = supersampled_rays(cams, 2)

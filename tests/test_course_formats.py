@@ -14,7 +14,7 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras, to_opengl_c2w, to_pytorch3d
 from l3d_app.geometry.primitives import icosphere
 from l3d_app.geometry.point_mesh_distance import point_mesh_distance
-from l3d_app.render.rgbd import rgbd_from_mesh
+from l3d_app.render.mesh.rgbd import rgbd_from_mesh
 
 S = 24
 

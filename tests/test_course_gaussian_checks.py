@@ -36,8 +36,8 @@ from scipy.spatial.transform import Rotation
 
 from conftest import course_data
 from l3d_app.geometry.cameras import Cameras, look_at, to_pytorch3d
-from l3d_app.render.gaussians import project_gaussians, rasterize_gaussians
-from l3d_app.render.gaussians_project import quat_rotation
+from l3d_app.render.gaussians.rasterize import project_gaussians, rasterize_gaussians
+from l3d_app.render.gaussians.project import quat_rotation
 
 D = torch.float64
 W_PX = H_PX = 128

@@ -6,7 +6,7 @@ import math
 import torch
 
 from l3d_app.losses.occupancy import coverage_bce
-from l3d_app.render.volume import composite
+from l3d_app.render.volume.renderer import composite
 
 
 def naive_bce(tau, m, eps):

@@ -1,4 +1,4 @@
-"""density=auto (render/density_choice.py): the cameras-below fraction against a naive count, the choice at
+"""density=auto (render/sdf/density_choice.py): the cameras-below fraction against a naive count, the choice at
 and around the threshold, the data's up axis, and NeuS's width derived from VolSDF's knobs."""
 
 import math
@@ -9,7 +9,7 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
-from l3d_app.render.density_choice import below_fraction, candidate_configs, choose_density
+from l3d_app.render.sdf.density_choice import below_fraction, candidate_configs, choose_density
 
 
 def _data(elevations_deg, up=None, box=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))):

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from l3d_app.losses.free_space import MAX_DEPTH, log_depth, opacity_before
-from l3d_app.render.free_space import FreeRays
-from l3d_app.render.rendering import render_rays
+from l3d_app.render.volume.free_space import FreeRays
+from l3d_app.render.volume.rendering import render_rays
 
 BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
@@ -190,7 +190,7 @@ def test_termination_distance_of_two_samples_and_its_gradient_by_hand():
     (1 - a1)(1 - a2) T - near, written out here in float64; dE/da1 = t1 - a2 t2 - (1 - a2) T < 0 (density at
     the front lowers it) and dE/da2 = (1 - a1)(t2 - T)."""
     from l3d_app.losses.free_space import termination_distance
-    from l3d_app.render.volume import composite
+    from l3d_app.render.volume.renderer import composite
 
     a = torch.tensor([[0.3, 0.6]], dtype=torch.float64, requires_grad=True)
     t = torch.tensor([[1.0, 1.5]], dtype=torch.float64)
@@ -209,7 +209,7 @@ def test_termination_distance_of_a_uniform_fog_matches_its_integral():
     """Constant density s over a box stretch of length L: E = (1 - exp(-s L)) / s (the integral of the
     transmittance), rendered with 2000 stratified samples."""
     from l3d_app.losses.free_space import termination_distance
-    from l3d_app.render.volume import composite
+    from l3d_app.render.volume.renderer import composite
 
     s, L, n = 1.7, 2.0, 2000
     t = (torch.arange(n, dtype=torch.float64) * L / n + 3.0)[None]

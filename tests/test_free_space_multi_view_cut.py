@@ -6,7 +6,7 @@ import torch
 
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.geometry.rays import camera_rays
-from l3d_app.render.free_space import FreeRays, nearest_other_view_ends
+from l3d_app.render.volume.free_space import FreeRays, nearest_other_view_ends
 
 HW = 32 * 32
 

@@ -1,4 +1,4 @@
-"""Known free space along rays (render/free_space.py): the opacity distance against a naive
+"""Known free space along rays (render/volume/free_space.py): the opacity distance against a naive
 float64 loop and against analytic fields; the free segments' box and margin arithmetic; the
 carving loss on them drives a sphere out of the free stretch."""
 
@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from l3d_app.render.estimators.stratified import StratifiedEstimator
-from l3d_app.render.free_space import FreeRays, free_distances, opacity_distance
+from l3d_app.render.volume.estimators.stratified import StratifiedEstimator
+from l3d_app.render.volume.free_space import FreeRays, free_distances, opacity_distance
 
 BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
@@ -109,7 +109,7 @@ def _uniform_draw(free, radius, g):
 
 
 def _resampled_draw(free, radius, g):
-    from l3d_app.render.free_space import near_surface_weight
+    from l3d_app.render.volume.free_space import near_surface_weight
     pts, _, w = free.sample_resampled(256, 8, lambda p: near_surface_weight(p.norm(dim=-1) - radius, 0.05), g)
     return pts, w
 
@@ -179,7 +179,7 @@ def test_resampling_without_the_proposal_is_the_uniform_draw():
 
 
 def test_near_surface_weight_is_the_laplace_shape():
-    from l3d_app.render.free_space import near_surface_weight
+    from l3d_app.render.volume.free_space import near_surface_weight
     torch.testing.assert_close(near_surface_weight(torch.tensor([0.0, 0.1, -0.1]), 0.1),
                                torch.tensor([1.0, math.exp(-1), math.exp(-1)]))
     with pytest.raises(ValueError, match="width"):

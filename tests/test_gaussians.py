@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from l3d_app.geometry.cameras import Cameras, look_at
-from l3d_app.render.sh import eval_sh, rgb_to_sh, sh_to_rgb
-from l3d_app.render.gaussians import rasterize_gaussians
+from l3d_app.render.gaussians.sh import eval_sh, rgb_to_sh, sh_to_rgb
+from l3d_app.render.gaussians.rasterize import rasterize_gaussians
 from sh_reference import sh_colour
 
 torch.set_num_threads(1)
@@ -275,7 +275,7 @@ def test_sh_basis_is_orthonormal_on_the_sphere():
     (Gauss-Legendre in z, trapezoid in azimuth) that is exact for these degree-6 products."""
     import numpy as np
 
-    from l3d_app.render.sh import sh_basis
+    from l3d_app.render.gaussians.sh import sh_basis
 
     zq, wq = np.polynomial.legendre.leggauss(8)
     phi = np.arange(16) * (2 * math.pi / 16)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from l3d_app.render.gaussians_composite import (ALPHA_MAX, CompositeFunction, bin_tiles, composite_pairs,
+from l3d_app.render.gaussians.composite import (ALPHA_MAX, CompositeFunction, bin_tiles, composite_pairs,
                                                 splat_pixel_pairs)
 
 DT = torch.float64
@@ -120,7 +120,7 @@ def _projection_inputs(seed=0):
 
 
 def test_gradcheck_projection_hard_cases():
-    from l3d_app.render.gaussians_project import ProjectFunction
+    from l3d_app.render.gaussians.project import ProjectFunction
 
     means, log_scales, quats, R, t = _projection_inputs()
     x = [v.clone().requires_grad_(True) for v in (means, log_scales, quats)]
@@ -136,7 +136,7 @@ def test_gradcheck_projection_hard_cases():
 
 def test_projection_backward_matches_autograd_reference():
     from l3d_app.geometry.cameras import Cameras
-    from l3d_app.render.gaussians import project_gaussians
+    from l3d_app.render.gaussians.rasterize import project_gaussians
 
     means, log_scales, quats, R, t = _projection_inputs(1)
     cams = Cameras(R[None], t[None], 30.0, 31.0, 12.0, 9.5, 24, 18)
@@ -163,7 +163,7 @@ def test_screen_coverage_of_one_round_splat_is_its_disc_and_shrinking_bounds_it(
     import math
 
     from l3d_app.geometry.cameras import Cameras
-    from l3d_app.render.gaussians_coverage import screen_coverage, shrink_to_coverage
+    from l3d_app.render.gaussians.coverage import screen_coverage, shrink_to_coverage
 
     W = H = 64
     f, z, s, o = 80.0, 4.0, 0.2, 0.5
@@ -186,7 +186,7 @@ def test_screen_coverage_of_one_round_splat_is_its_disc_and_shrinking_bounds_it(
 
 def test_isotropic_log_scales_render_and_differentiate_like_three_equal_ones():
     from l3d_app.geometry.cameras import Cameras
-    from l3d_app.render.gaussians import rasterize_gaussians
+    from l3d_app.render.gaussians.rasterize import rasterize_gaussians
 
     g = torch.Generator().manual_seed(3)
     n = 40
@@ -207,7 +207,7 @@ def test_isotropic_log_scales_render_and_differentiate_like_three_equal_ones():
 
 def test_depth_key_orders_like_the_depths():
     """The float32 bit-pattern key sorts exactly as the values (negatives, zeros, infinities)."""
-    from l3d_app.render.gaussians_composite import _depth_key
+    from l3d_app.render.gaussians.composite import _depth_key
     g = torch.Generator().manual_seed(5)
     d = torch.cat([torch.randn(5000, generator=g) * 10.0 ** torch.randint(-30, 30, (5000,), generator=g),
                    torch.tensor([0.0, -0.0, float("inf"), -float("inf"), 1e-45, -1e-45, 3.0, 3.0])])

@@ -22,12 +22,12 @@ import torch
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.models.sdf_grid import SDFGridField
 from l3d_app.losses.eikonal import eikonal_loss
-from l3d_app.render.sh import SH_C0
-from l3d_app.render.densities import LaplaceDensity, volsdf_density
-from l3d_app.render.gaussians import rasterize_gaussians
-from l3d_app.render.neus import neus_alpha
-from l3d_app.render.sphere_tracing import sphere_trace
-from l3d_app.render.volume import composite
+from l3d_app.render.gaussians.sh import SH_C0
+from l3d_app.render.sdf.densities import LaplaceDensity, volsdf_density
+from l3d_app.render.gaussians.rasterize import rasterize_gaussians
+from l3d_app.render.sdf.neus import neus_alpha
+from l3d_app.render.sdf.sphere_tracing import sphere_trace
+from l3d_app.render.volume.renderer import composite
 from l3d_app.runtime.precision import autocast
 
 BF16 = torch.bfloat16

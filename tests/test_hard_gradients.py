@@ -1,7 +1,7 @@
 """Hard cases with gradient VALUES (not only finiteness), each against a float64 closed form,
 a brute-force float64 reference or central finite differences written here:
 
-* float32 transmittance / compositing (render/volume.py ``composite``) with sigma * delta up
+* float32 transmittance / compositing (render/volume/renderer.py ``composite``) with sigma * delta up
   to 1e20, against the float64 closed-form gradient;
 * chamfer with duplicate and coincident points against brute force (duplicates get what
   brute force's first-index argmin gives them, identical copies in x identical gradients);
@@ -23,7 +23,7 @@ from l3d_app.geometry.sdf import Sphere
 from l3d_app.losses.eikonal import eikonal_at, eikonal_loss
 from l3d_app.losses.mesh_regularizers import edge_length, laplacian_smoothing, normal_consistency
 from l3d_app.metrics.chamfer import chamfer_distance
-from l3d_app.render.volume import composite
+from l3d_app.render.volume.renderer import composite
 
 D = torch.float64
 
@@ -101,7 +101,7 @@ def test_float32_transmittance_with_huge_optical_depths_matches_float64_gradient
 
 
 # was a bug (torch's expm1 backward forms exp(-tau) as result + 1, 0 in float32 for tau > ~16.6);
-# composite now takes d alpha / d tau = exp(-tau) directly (render/volume.py: opacity_from_optical_depth)
+# composite now takes d alpha / d tau = exp(-tau) directly (render/volume/renderer.py: opacity_from_optical_depth)
 @pytest.mark.parametrize("tau", [10.0, 17.0, 20.0])
 def test_float32_gradient_of_a_long_last_segment_matches_float64(tau):
     s = torch.tensor([[0.1, tau * 1e-10]], dtype=torch.float32, requires_grad=True)

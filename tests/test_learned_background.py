@@ -9,7 +9,7 @@ import torch
 
 from l3d_app.app import run_task
 from l3d_app.geometry.cameras import look_at_cameras, to_opengl_c2w
-from l3d_app.render.radiance import render_field_rays
+from l3d_app.render.volume.radiance import render_field_rays
 
 
 def _grey_blender(root, n=10, size=8, value=90, distance=3.0):

@@ -213,7 +213,7 @@ def test_course_rgbd_view_of_zero_pixels():
 def test_depth_colormap_of_unmatched_stereo_depths():
     """+inf (zero disparity) and NaN take the top colour, the scale is the finite maximum: a
     valid stereo_depth run at 32 px crashed on an index of -2^63 before."""
-    from l3d_app.render.diagnostics import depth_colormap
+    from l3d_app.render.volume.diagnostics import depth_colormap
     depth = torch.tensor([[1.0, 2.0], [float("inf"), float("nan")]])
     rgb = depth_colormap(depth)
     assert torch.isfinite(rgb).all()
@@ -223,7 +223,7 @@ def test_depth_colormap_of_unmatched_stereo_depths():
 
 
 def test_knobs_checked_before_training(compose):
-    from l3d_app.render.mesh_renderer import MeshRenderer
+    from l3d_app.render.mesh.renderer import MeshRenderer
     from l3d_app.tasks.common import require_mesh_formats, require_positive
     from l3d_app.tasks.svr_common import require_thresholds
     ok = compose("task=volsdf")

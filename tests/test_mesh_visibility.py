@@ -1,4 +1,4 @@
-"""Visibility culling of extracted meshes (l3d_app.render.mesh_visibility): what no camera
+"""Visibility culling of extracted meshes (l3d_app.render.mesh.visibility): what no camera
 sees is removed, what some camera sees is kept, by area against the analytic shares."""
 
 import pytest
@@ -6,7 +6,7 @@ import torch
 
 from l3d_app.geometry import primitives as P
 from l3d_app.geometry.cameras import look_at_cameras
-from l3d_app.render.mesh_visibility import cull_unseen_faces, seen_faces
+from l3d_app.render.mesh.visibility import cull_unseen_faces, seen_faces
 
 
 def _cams(elevations, n_azim=12):

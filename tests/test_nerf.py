@@ -12,9 +12,9 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras, to_opengl_c2w
 from l3d_app.models.encodings import HASH_PRIMES, GridEncoding, HarmonicEncoding
 from l3d_app.models.nerf import GridField, NeRFMLP
-from l3d_app.render.estimators import OccupancyEstimator, StratifiedEstimator
-from l3d_app.render.occupancy import OccupancyGrid
-from l3d_app.render.radiance import render_field_rays
+from l3d_app.render.volume.estimators import OccupancyEstimator, StratifiedEstimator
+from l3d_app.render.volume.occupancy import OccupancyGrid
+from l3d_app.render.volume.radiance import render_field_rays
 from conftest import course_data
 
 

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from l3d_app.registry import DENSITIES
-from l3d_app.render.densities import transition_width
-from l3d_app.render.neus import NeuSDensity
+from l3d_app.render.sdf.densities import transition_width
+from l3d_app.render.sdf.neus import NeuSDensity
 
 
 def test_anneal_is_geometric_from_s_to_s_end_then_held():
@@ -140,7 +140,7 @@ def test_the_refused_knobs_shipped_values_are_the_configs(compose):
 def test_a_loaded_annealed_state_renders_with_its_last_s():
     """An annealed run's checkpoint holds its last ``s`` (log_s): a fresh module of the same config loading
     it must use that ``s`` (its optical depths equal the saved module's), not the configured start."""
-    from l3d_app.render.neus import NeuSDensity
+    from l3d_app.render.sdf.neus import NeuSDensity
     trained = NeuSDensity(s=3.0, mode="anneal", s_end=300.0, anneal_fraction=0.5)
     trained.schedule(1000, 1000)
     loaded = NeuSDensity(s=3.0, mode="anneal", s_end=300.0, anneal_fraction=0.5)

@@ -8,7 +8,7 @@ import torch
 
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.losses.patch_consistency import PatchConsistency, bilinear, ncc, nearest_views, patch_offsets
-from l3d_app.render.estimators.zero_crossing import crossing_bracket, first_crossing
+from l3d_app.render.volume.estimators.zero_crossing import crossing_bracket, first_crossing
 
 SIZE = 64
 

@@ -12,7 +12,7 @@ from l3d_app.geometry.cameras import Cameras, look_at
 from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.rays import pixel_centers
 from l3d_app.registry import RENDERERS
-from l3d_app.render.points import PointRenderer
+from l3d_app.render.points.renderer import PointRenderer
 
 H, W = 20, 26  # non-square, to catch row/column swaps
 

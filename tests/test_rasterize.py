@@ -8,9 +8,9 @@ import torch
 from l3d_app.geometry.cameras import Cameras, look_at
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.registry import RENDERERS
-from l3d_app.render.mesh_renderer import DEFAULT_ALBEDO, MeshRenderer
-from l3d_app.render.rasterize import rasterize
-from l3d_app.render.shading import Lights, Material, interpolate, lambert, phong
+from l3d_app.render.mesh.renderer import DEFAULT_ALBEDO, MeshRenderer
+from l3d_app.render.mesh.rasterize import rasterize
+from l3d_app.render.mesh.shading import Lights, Material, interpolate, lambert, phong
 from l3d_app.geometry.textures import sample_texture
 
 TIE_PX = 1e-4  # pixel centres this close to a triangle edge are ties (excluded)

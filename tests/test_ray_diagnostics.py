@@ -11,7 +11,7 @@ import torch
 from l3d_app.app import run_task
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
-from l3d_app.render.diagnostics import pixel_grid_image, ray_direction_image, ray_sample_points
+from l3d_app.render.volume.diagnostics import pixel_grid_image, ray_direction_image, ray_sample_points
 
 
 def test_pixel_grid_matches_the_course_formula():

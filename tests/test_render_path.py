@@ -113,7 +113,7 @@ def test_render_path_on_a_gs_train_run_matches_the_model(compose, tmp_path):
     from l3d_app.data.nerf_views import nerf_builtin
     from l3d_app.geometry.gaussian_ply import load_gaussian_ply
     from l3d_app.models.gaussians import GaussianModel
-    from l3d_app.render.gaussians import rasterize_gaussians
+    from l3d_app.render.gaussians.rasterize import rasterize_gaussians
 
     data_args = ["data.image_size=24", "data.n_train=12", "data.n_val=1", "data.n_test=1", "data.antialias=1",
                  f"data.cache_dir={tmp_path / 'cache'}"]

@@ -15,8 +15,8 @@ from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.point_mesh_distance import point_mesh_distance
 from l3d_app.geometry.rgbd import unproject_depth, unproject_views
 from l3d_app.registry import DATASETS
-from l3d_app.render.mesh_renderer import MeshRenderer
-from l3d_app.render.rgbd import rgbd_from_mesh
+from l3d_app.render.mesh.renderer import MeshRenderer
+from l3d_app.render.mesh.rgbd import rgbd_from_mesh
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from l3d_app.app import run_task
-from l3d_app.render.sampling_variance import (GaussianBump, Slab, optical_depth_estimates,
+from l3d_app.render.volume.sampling_variance import (GaussianBump, Slab, optical_depth_estimates,
                                               stratified_variance_slab, uniform_variance)
 
 

@@ -13,10 +13,10 @@ from l3d_app.geometry.sdf import Sphere, Torus
 from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
 from l3d_app.models.encodings import GridEncoding
 from l3d_app.models.sdf_grid import SDFGridField, finite_difference_gradient, grid_encode_with_jacobian
-from l3d_app.render.densities import LaplaceDensity, volsdf_density
-from l3d_app.render.estimators import SDFCacheProposal
-from l3d_app.render.neus import NeuSDensity
-from l3d_app.render.sdf_volume import SDFGridCache, render_sdf_rays
+from l3d_app.render.sdf.densities import LaplaceDensity, volsdf_density
+from l3d_app.render.volume.estimators import SDFCacheProposal
+from l3d_app.render.sdf.neus import NeuSDensity
+from l3d_app.render.sdf.volume import SDFGridCache, render_sdf_rays
 
 D = torch.float64
 BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))

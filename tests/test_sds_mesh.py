@@ -9,10 +9,10 @@ from l3d_app.data.scenes import builtin_scene
 from l3d_app.errors import UserError
 from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.mesh import Mesh
-from l3d_app.render.mesh_renderer import MeshRenderer
+from l3d_app.render.mesh.renderer import MeshRenderer
 from l3d_app.metrics.prompt_match import score_frames
 from l3d_app.models.texture_field import TextureField
-from l3d_app.render.field_texture import FieldTextureRenderer
+from l3d_app.render.mesh.field_texture import FieldTextureRenderer
 from conftest import course_data
 from sds_task_runs import numbers_finite, run_metrics
 

@@ -13,9 +13,9 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.losses.nerf_regularizers import density_normals, opacity_entropy, orientation_penalty
 from l3d_app.models.blob_field import BlobField
-from l3d_app.render.field_shading import normals_as_latent, shading_sampler
+from l3d_app.render.volume.field_shading import normals_as_latent, shading_sampler
 from l3d_app.losses.nerf_regularizers import density_normals, orientation_penalty
-from l3d_app.render.field_shading import render_shaded_views
+from l3d_app.render.volume.field_shading import render_shaded_views
 
 
 def render_views(*args, **kw):

@@ -1,4 +1,4 @@
-"""Real SH basis (degrees 0-3) of l3d_app.render.sh against an independent construction from
+"""Real SH basis (degrees 0-3) of l3d_app.render.gaussians.sh against an independent construction from
 scipy.special's associated Legendre functions, value AND sign per coefficient, at many
 directions including both poles.
 
@@ -18,7 +18,7 @@ import pytest
 import torch
 from scipy.special import lpmv, sph_harm_y
 
-from l3d_app.render.sh import eval_sh, sh_basis, sh_to_color
+from l3d_app.render.gaussians.sh import eval_sh, sh_basis, sh_to_color
 from sh_reference import real_sh_3dgs, sh_colour
 
 D = torch.float64
@@ -151,7 +151,7 @@ def test_coefficient_and_basis_gradients_match_plain_autograd(degree):
     """BasisDot's hand-written backward against autograd through an einsum (float64): the
     gradients to the coefficients (only the first (degree+1)^2 receive any) and to the
     directions, for per-splat coefficients and for coefficients broadcast over a batch."""
-    from l3d_app.render.sh import sh_basis
+    from l3d_app.render.gaussians.sh import sh_basis
 
     g = torch.Generator().manual_seed(3)
     d = torch.nn.functional.normalize(torch.randn(2, 40, 3, generator=g, dtype=D), dim=-1)

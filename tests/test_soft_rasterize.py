@@ -10,7 +10,7 @@ import torch
 from l3d_app.geometry.cameras import Cameras, look_at
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.registry import RENDERERS
-from l3d_app.render.soft_rasterize import SoftMeshRenderer, influence_radius, soft_rasterize
+from l3d_app.render.mesh.soft_rasterize import SoftMeshRenderer, influence_radius, soft_rasterize
 
 F64 = torch.float64
 

@@ -7,7 +7,7 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.sdf import Box, Sphere, Torus, Union
-from l3d_app.render.sphere_tracing import render_sdf_shaded, sdf_normals, sphere_trace, sphere_trace_box
+from l3d_app.render.sdf.sphere_tracing import render_sdf_shaded, sdf_normals, sphere_trace, sphere_trace_box
 
 
 def _ray_sphere(o, d, c, r):

@@ -6,8 +6,8 @@ import mpmath
 import pytest
 import torch
 
-from l3d_app.render.densities import laplace_cdf, volsdf_density
-from l3d_app.render.neus import logistic_density, neus_alpha, neus_optical_depth
+from l3d_app.render.sdf.densities import laplace_cdf, volsdf_density
+from l3d_app.render.sdf.neus import logistic_density, neus_alpha, neus_optical_depth
 
 mpmath.mp.dps = 50
 
@@ -133,7 +133,7 @@ def _packed(values, dtype):
 @pytest.mark.parametrize("sdf", [-1e3, -1e-3, 0.0, 2e-4, 1e3])
 def test_volsdf_module_at_beta_1e4_matches_mpmath_in_float32(sdf):
     from l3d_app.registry import DENSITIES
-    import l3d_app.render.densities  # noqa: F401  (registers)
+    import l3d_app.render.sdf.densities  # noqa: F401  (registers)
 
     beta = 1e-4
     dens = DENSITIES.build({"name": "volsdf", "beta": beta, "mode": "fixed", "beta_end": beta, "beta_min": 0.0,
@@ -155,7 +155,7 @@ def test_volsdf_module_at_beta_1e4_matches_mpmath_in_float32(sdf):
 
 def test_volsdf_module_beta_gradient_and_anneal_schedule():
     from l3d_app.registry import DENSITIES
-    import l3d_app.render.densities  # noqa: F401
+    import l3d_app.render.sdf.densities  # noqa: F401
 
     dens = DENSITIES.build({"name": "volsdf", "beta": 0.1, "mode": "learnable", "beta_end": 0.01, "beta_min": 1e-4})
     f, t0, t1, rays = _packed([-0.05, 0.02], torch.float32)
@@ -177,7 +177,7 @@ def test_volsdf_module_beta_gradient_and_anneal_schedule():
 @pytest.mark.parametrize("s", [64.0, 1e4])
 def test_neus_module_at_s_1e4_matches_mpmath_and_ends_each_ray(s):
     from l3d_app.registry import DENSITIES
-    import l3d_app.render.neus  # noqa: F401
+    import l3d_app.render.sdf.neus  # noqa: F401
 
     dens = DENSITIES.build({"name": "neus", "s": s})
     vals = [1e3, -1e3, 2e-4, -1e-4, -0.5, 0.5]             # rays: (1e3 -> -1e3), (2e-4 -> -1e-4), (-0.5 -> 0.5)

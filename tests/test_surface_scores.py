@@ -13,7 +13,7 @@ from l3d_app.geometry.sampling import sample_surface
 from l3d_app.geometry.point_mesh_distance import point_mesh_distance, point_triangle_distance
 from l3d_app.metrics.observed import observed_mask
 from l3d_app.metrics.surface_scores import surface_scores
-from l3d_app.render.rgbd import true_depth_maps
+from l3d_app.render.mesh.rgbd import true_depth_maps
 
 
 def _naive_point_triangle(p, a, b, c):

@@ -9,7 +9,7 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
-from l3d_app.render.pseudo_render import pseudo_render
+from l3d_app.render.points.pseudo import pseudo_render
 
 
 def naive_render(points, cams, U, values=None, active=None):

@@ -12,10 +12,10 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.sdf import Box, Sphere
 from l3d_app.losses.eikonal import eikonal_at, eikonal_loss, sdf_gradient
 from l3d_app.models.sdf_net import SDFField, SDFNetwork, pretrain_sphere
-from l3d_app.render.densities import LaplaceDensity
-from l3d_app.render.estimators import SDFCacheProposal
-from l3d_app.render.neus import NeuSDensity
-from l3d_app.render.sdf_volume import render_sdf_rays
+from l3d_app.render.sdf.densities import LaplaceDensity
+from l3d_app.render.volume.estimators import SDFCacheProposal
+from l3d_app.render.sdf.neus import NeuSDensity
+from l3d_app.render.sdf.volume import render_sdf_rays
 
 
 def _true_mesh_diagonal() -> float:

@@ -1,4 +1,4 @@
-"""VolSDF's density of the distance along the ray (``density_along_ray``, render/densities.py): f / |n . d|
+"""VolSDF's density of the distance along the ray (``density_along_ray``, render/sdf/densities.py): f / |n . d|
 against the analytic distance to a plane, the transmittance at a plane the same at every angle (and not so
 without it), a ray passing a sphere that stays clear (and not so without it), its gradient by hand, the hard
 cases (zero gradient, a ray along the surface, huge values, bfloat16 autocast), and the config checks."""
@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from l3d_app.errors import UserError
-from l3d_app.render.densities import LaplaceDensity, distance_along_ray
-from l3d_app.render.sdf_volume import sdf_rgb_sigma_fn
+from l3d_app.render.sdf.densities import LaplaceDensity, distance_along_ray
+from l3d_app.render.sdf.volume import sdf_rgb_sigma_fn
 
 BETA = 0.005
 

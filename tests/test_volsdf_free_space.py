@@ -9,7 +9,7 @@ from l3d_app.app import run_task
 from l3d_app.errors import UserError
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import DATASETS, TASKS
-from l3d_app.render.rgbd import true_depth_maps
+from l3d_app.render.mesh.rgbd import true_depth_maps
 
 TINY = ["data.image_size=64", "data.n_train=48", "data.n_val=2", "data.n_test=2", "data.antialias=1",
         "tensorboard=false", "threads=1"]
@@ -147,7 +147,7 @@ def test_neus_occupancy_loss_against_the_logistic_cdf_by_hand():
     import math
 
     from l3d_app.losses.free_space import free_stretch_loss
-    from l3d_app.render.neus import NeuSDensity
+    from l3d_app.render.sdf.neus import NeuSDensity
 
     dens = NeuSDensity(20.0)
     f = torch.tensor([0.1, -0.05, 0.0, 3.0], dtype=torch.float64)
@@ -166,7 +166,7 @@ def test_free_space_losses_against_the_laplace_cdf_by_hand():
     here; occupancy = mean(Psi x length), density = alpha x that (alpha = 1 / beta), outside = mean(relu(-f))."""
     import math
 
-    from l3d_app.render.densities import LaplaceDensity
+    from l3d_app.render.sdf.densities import LaplaceDensity
     from l3d_app.losses.free_space import free_stretch_loss as free_space_loss
 
     dens = LaplaceDensity(0.1, None, learnable=False, beta_min=0.0)
@@ -261,7 +261,7 @@ def test_the_ray_loss_reads_each_batch_rays_own_stretch_end(compose, tmp_path, m
     cut back by FreeRays.multi_view_cut, which moves some of them), and its term lowers
     the render's opacity before those ends (the run logs it falling)."""
     import l3d_app.tasks.volsdf as volsdf_task
-    from l3d_app.render.free_space import FreeRays
+    from l3d_app.render.volume.free_space import FreeRays
 
     drawn, calls = [], []
 

@@ -1,4 +1,4 @@
-"""VolSDF's linear quadrature (render/densities.py): the exact mean of Psi_beta(-f) along a linear SDF
+"""VolSDF's linear quadrature (render/sdf/densities.py): the exact mean of Psi_beta(-f) along a linear SDF
 against a float64 trapezoid rule, its gradients against autograd through that rule, the segment-end
 interpolation by hand, and a ray through a plane whose optical depth no longer hinges on where its
 samples fall when beta is below their spacing."""
@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from l3d_app.render.densities import LaplaceDensity, laplace_cdf, linear_segment_ends, mean_laplace_cdf
+from l3d_app.render.sdf.densities import LaplaceDensity, laplace_cdf, linear_segment_ends, mean_laplace_cdf
 
 S = torch.linspace(0, 1, 100001, dtype=torch.float64)
 

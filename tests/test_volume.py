@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from l3d_app.geometry.cameras import look_at_cameras
-from l3d_app.render.densities import laplace_cdf, volsdf_density
-from l3d_app.render.samplers import (bin_edges, importance_samples, ray_aabb, sample_pdf,
+from l3d_app.render.sdf.densities import laplace_cdf, volsdf_density
+from l3d_app.render.volume.samplers import (bin_edges, importance_samples, ray_aabb, sample_pdf,
                                      stratified_samples)
-from l3d_app.render.volume import VolumeRenderer, composite, render_rays_chunked, sample_deltas
+from l3d_app.render.volume.renderer import VolumeRenderer, composite, render_rays_chunked, sample_deltas
 
 D = torch.float64
 
@@ -287,8 +287,8 @@ def _blob_rays(n=24):
 
 @pytest.mark.parametrize("kind", ["stratified", "occupancy"])
 def test_render_rays_matches_a_naive_float64_loop_in_values_and_gradients(kind):
-    from l3d_app.render.estimators import OccupancyEstimator, StratifiedEstimator
-    from l3d_app.render.rendering import radiance_fn, render_rays
+    from l3d_app.render.volume.estimators import OccupancyEstimator, StratifiedEstimator
+    from l3d_app.render.volume.rendering import radiance_fn, render_rays
 
     box = ((-1.0,) * 3, (1.0,) * 3)
     o, d = _blob_rays()
@@ -322,8 +322,8 @@ def test_render_rays_matches_a_naive_float64_loop_in_values_and_gradients(kind):
 
 
 def test_render_rays_alpha_and_tau_modes_match_the_naive_loop():
-    from l3d_app.render.estimators import StratifiedEstimator
-    from l3d_app.render.rendering import points_of, render_rays
+    from l3d_app.render.volume.estimators import StratifiedEstimator
+    from l3d_app.render.volume.rendering import points_of, render_rays
 
     o, d = _blob_rays(8)
     t0, t1, rays = StratifiedEstimator(16, near=0.5, far=4.5).sampling(o, d)
@@ -350,8 +350,8 @@ def test_render_rays_with_no_sample_in_the_whole_chunk_gives_the_background():
     """An evaluation chunk of rays that all miss the box (or all fall in empty grid cells) has N = 0
     samples; it must composite to the background with opacity 0 (it crashed on the `around` scene at
     256 px, where a whole chunk of corner pixels missed the box)."""
-    from l3d_app.render.estimators import OccupancyEstimator
-    from l3d_app.render.rendering import radiance_fn, render_rays
+    from l3d_app.render.volume.estimators import OccupancyEstimator
+    from l3d_app.render.volume.rendering import radiance_fn, render_rays
 
     est = OccupancyEstimator(((-1.0,) * 3, (1.0,) * 3), n_samples=16, resolution=8)
     o = torch.tensor([[5.0, 5.0, 5.0], [5.0, -5.0, 5.0]], dtype=D)

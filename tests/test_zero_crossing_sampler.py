@@ -1,4 +1,4 @@
-"""Fine samples at the field's own zero crossing (``sampler.anchor``, render/estimators/zero_crossing.py):
+"""Fine samples at the field's own zero crossing (``sampler.anchor``, render/volume/estimators/zero_crossing.py):
 the first crossing by hand, its refinement against the analytic ray-sphere intersection, and an estimator
 whose coarse cache is too rough for a sharp transition that still puts its anchored samples inside it and
 renders a head-on ray's optical depth to the surface close to the analytic 0.5."""
@@ -8,10 +8,10 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from l3d_app.render.densities import LaplaceDensity
-from l3d_app.render.estimators import SDFCacheProposal
-from l3d_app.render.estimators.zero_crossing import first_crossing, refine_crossing
-from l3d_app.render.sdf_volume import render_sdf_rays
+from l3d_app.render.sdf.densities import LaplaceDensity
+from l3d_app.render.volume.estimators import SDFCacheProposal
+from l3d_app.render.volume.estimators.zero_crossing import first_crossing, refine_crossing
+from l3d_app.render.sdf.volume import render_sdf_rays
 
 D = torch.float64
 BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
@@ -104,7 +104,7 @@ def test_bad_anchor_settings_are_refused(kw):
 
 
 def test_the_anchor_window_is_in_each_density_s_own_width():
-    from l3d_app.render.densities import transition_width
-    from l3d_app.render.neus import NeuSDensity
+    from l3d_app.render.sdf.densities import transition_width
+    from l3d_app.render.sdf.neus import NeuSDensity
     assert transition_width(LaplaceDensity(0.01, None, learnable=False, beta_min=0.0)) == pytest.approx(0.01)
     assert transition_width(NeuSDensity(50.0)) == pytest.approx(0.02)

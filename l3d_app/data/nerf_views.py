@@ -4,7 +4,7 @@
 ``transforms_*.json`` folders in :mod:`l3d_app.data.nerf_formats`, the course truck).
 
 The built-in dataset (``data=nerf_builtin``) is rendered by our own mesh renderer
-(:class:`~l3d_app.render.mesh_renderer.MeshRenderer`, Lambert shading under a FIXED
+(:class:`~l3d_app.render.mesh.renderer.MeshRenderer`, Lambert shading under a FIXED
 directional light, so appearance does not depend on the viewpoint) from a procedural scene
 with textured and thin parts: a checker-textured plinth, four thin coloured poles, a thin
 tilted ring and a colour-gradient sphere. Cameras look at the origin from a sphere:
@@ -263,7 +263,7 @@ def nerf_builtin(image_size: int = 64, n_train: int = 100, n_val: int = 4, n_tes
     if path.exists():
         images = torch.load(path, map_location="cpu", weights_only=True)["images"]
     else:
-        from l3d_app.render.mesh_renderer import MeshRenderer
+        from l3d_app.render.mesh.renderer import MeshRenderer
 
         renderer = MeshRenderer(shading="lambert", background=tuple(bg.tolist()), ambient=0.45, diffuse=0.55,
                                 specular=0.0, light_direction=(0.4, 1.0, 0.6), antialias=int(antialias))

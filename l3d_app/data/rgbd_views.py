@@ -8,7 +8,7 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.rgbd import unproject_depth
-from l3d_app.render.rgbd import rgbd_from_mesh
+from l3d_app.render.mesh.rgbd import rgbd_from_mesh
 from l3d_app.registry import DATASETS
 
 

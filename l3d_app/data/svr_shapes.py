@@ -11,7 +11,7 @@ at distance 1: every object lies in the canonical box ``[-1, 1]^3`` (:data:`BOUN
 Per object the dataset stores (all in the canonical object frame, world units):
 
 * ``views_per_object`` input images rendered by our
-  :class:`~l3d_app.render.mesh_renderer.MeshRenderer` (Lambert, fixed light, white
+  :class:`~l3d_app.render.mesh.renderer.MeshRenderer` (Lambert, fixed light, white
   background, 2x supersampling), from cameras looking at the origin from ``distance`` with
   random elevation in ``elevation_range`` and azimuth in ``azimuth_range`` (degrees);
 * ``num_points`` surface samples (area-uniform), the ground truth for chamfer / F1;
@@ -255,7 +255,7 @@ class SVRData:
 
 def render_object(mesh: Mesh, cams: Cameras, antialias: int = 2) -> torch.Tensor:
     """(B, H, W, 3) Lambert renders under a fixed light on white (the input images)."""
-    from l3d_app.render.mesh_renderer import MeshRenderer
+    from l3d_app.render.mesh.renderer import MeshRenderer
 
     renderer = MeshRenderer(shading="lambert", background=(1.0, 1.0, 1.0), ambient=0.35, diffuse=0.65,
                             specular=0.0, light_direction=(0.4, 1.0, 0.7), antialias=int(antialias))
@@ -264,7 +264,7 @@ def render_object(mesh: Mesh, cams: Cameras, antialias: int = 2) -> torch.Tensor
 
 def render_depth(mesh: Mesh, cams: Cameras) -> torch.Tensor:
     """(B, H, W) camera-Z depth of the nearest surface (0 on background), no supersampling."""
-    from l3d_app.render.mesh_renderer import MeshRenderer
+    from l3d_app.render.mesh.renderer import MeshRenderer
 
     return MeshRenderer(shading="unlit")(mesh, cams)["depth"]
 

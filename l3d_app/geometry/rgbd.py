@@ -1,4 +1,4 @@
-"""RGB-D images <-> point clouds (rendering RGB-D views of a mesh: :mod:`l3d_app.render.rgbd`).
+"""RGB-D images <-> point clouds (rendering RGB-D views of a mesh: :mod:`l3d_app.render.mesh.rgbd`).
 
 Depth maps hold camera-frame Z (world units; the convention of
 :mod:`l3d_app.geometry.cameras` and of ``MeshRenderer``'s ``depth``), with 0 (or any

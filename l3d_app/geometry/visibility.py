@@ -5,7 +5,7 @@ camera, and is no farther than the depth map at its pixel plus a tolerance; when
 surface normal is given, that surface must also face the camera. The depth maps may be finer
 than the cameras (a scale factor on both axes). Used by the observed-surface metrics
 (:mod:`l3d_app.metrics.observed`, depth of the TRUE surface) and by the visibility culling of
-extracted meshes (:mod:`l3d_app.render.mesh_visibility`, depth of the mesh itself).
+extracted meshes (:mod:`l3d_app.render.mesh.visibility`, depth of the mesh itself).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ def observed_mask(points: torch.Tensor, cameras: Cameras, depth_maps: torch.Tens
         cameras: B cameras (at their own resolution; ``depth_maps`` may be finer).
         depth_maps: (B, h, w) camera Z of the occluding surface (the true one for the metrics,
             the mesh itself for culling), +inf where empty
-            (:func:`l3d_app.render.rgbd.true_depth_maps`; h / H = w / W = the scale).
+            (:func:`l3d_app.render.mesh.rgbd.true_depth_maps`; h / H = w / W = the scale).
         tolerance: world units a point may lie behind that depth and still count.
         normals: optional (N, 3) outward normals of the points' surface: a camera then
             counts only if the surface faces it (``n . (C - p) > 0``).

@@ -12,7 +12,7 @@ the mound in view, the fraction form cleared the leftover where no ray passes at
 PSNR and surface roughness, and larger weights were worse; volsdf keeps them off.
 
 ``free_stretch_loss(kind, f, length, density)``: the same idea where the images SAY a point is
-empty (a point on a training ray before any surface, ``render/free_space.py``): ``outside``
+empty (a point on a training ray before any surface, ``render/volume/free_space.py``): ``outside``
 ``mean(relu(-f))``, ``density`` the stretch's optical depth (1-point estimate, VolSDF only),
 ``occupancy`` the density module's occupancy x length (VolSDF's ``Psi_beta(-f)``, NeuS's ``Phi_s(-f)``).
 
@@ -70,7 +70,7 @@ def free_stretch_loss(kind: str, f: torch.Tensor, length: torch.Tensor, density,
     (density(f) x length, 1-point estimate; a density per point: VolSDF); ``occupancy``
     ``density.occupancy(f) x length`` (VolSDF: the same over alpha, Psi_beta(-f) x length, as strong as
     ``density`` early, weaker as beta anneals; NeuS: sigmoid(-s f) x length). ``weights`` (N,): importance weights
-    of resampled points (:meth:`~l3d_app.render.free_space.FreeRays.sample_resampled`), each
+    of resampled points (:meth:`~l3d_app.render.volume.free_space.FreeRays.sample_resampled`), each
     point's term multiplied by its weight (None: 1)."""
     if kind == "outside":
         term = torch.relu(-f)

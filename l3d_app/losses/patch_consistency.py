@@ -24,7 +24,7 @@ import torch
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import pixel_axes
 from l3d_app.geometry.textures import sample_texture_indexed
-from l3d_app.render.estimators.zero_crossing import crossing_bracket
+from l3d_app.render.volume.estimators.zero_crossing import crossing_bracket
 
 
 def surface_crossing(t: torch.Tensor, sdf: torch.Tensor, grad: torch.Tensor

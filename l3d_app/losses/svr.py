@@ -29,7 +29,7 @@ from l3d_app.geometry.cameras import Cameras
 from l3d_app.losses.mesh_regularizers import laplacian_smoothing
 from l3d_app.losses.occupancy import bce_with_logits
 from l3d_app.metrics.chamfer import chamfer_distance_batched
-from l3d_app.render.pseudo_render import pseudo_render
+from l3d_app.render.points.pseudo import pseudo_render
 from l3d_app.runtime.random import rand
 
 Logs = Dict[str, torch.Tensor]

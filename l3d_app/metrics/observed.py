@@ -7,7 +7,7 @@ counts as observed when at least one camera sees it: it projects inside that cam
 in front of the camera, and no farther than the true surface's depth at that pixel plus a
 tolerance; and, when the point's surface normal is given (points sampled on the true
 surface), the surface faces that camera. The true depth maps are an input, rendered by the caller
-(:func:`l3d_app.render.rgbd.true_depth_maps`, our own rasteriser at ``scale`` times the
+(:func:`l3d_app.render.mesh.rgbd.true_depth_maps`, our own rasteriser at ``scale`` times the
 cameras' resolution: finer pixels, so a smaller tolerance suffices on thin parts and
 silhouettes); metrics never render.
 The facing test matters at grazing views: from a camera a little above the underside's

@@ -45,7 +45,7 @@ def surface_scores(pred: Mesh, truth: Mesh, cameras: Optional[Cameras] = None, n
                    tolerance: float = 0.01) -> Dict[str, float]:
     """Chamfer / F-score of mesh ``pred`` against mesh ``truth`` (see the module docstring);
     with ``cameras`` (the input views) and ``depth_maps`` (B, h, w), the true surface's depth
-    seen by them (:func:`l3d_app.render.rgbd.true_depth_maps`, e.g. at 4x their resolution),
+    seen by them (:func:`l3d_app.render.mesh.rgbd.true_depth_maps`, e.g. at 4x their resolution),
     also the observed-surface variants (``cameras`` without ``depth_maps`` is a ValueError:
     metrics do not render). CPU, float64.
     """

@@ -19,7 +19,7 @@ from typing import Dict, Optional
 import torch
 
 from l3d_app.geometry.normals import knn
-from l3d_app.render.sh import rgb_to_sh
+from l3d_app.render.gaussians.sh import rgb_to_sh
 
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
 

@@ -2,7 +2,7 @@
 
 Both are callables ``field(points (N, 3), dirs (N, 3)) -> (sigma (N,), rgb (N, 3))`` with
 ``sigma >= 0`` a density in 1 / world units and ``rgb`` in [0, 1] (the interface of
-:class:`~l3d_app.render.volume.VolumeRenderer`), plus ``density(points) -> (N,)`` for the
+:class:`~l3d_app.render.volume.renderer.VolumeRenderer`), plus ``density(points) -> (N,)`` for the
 occupancy grid and mesh extraction. ``dirs`` are unit ray directions (world frame).
 """
 

@@ -7,9 +7,9 @@ from typing import Dict, Optional
 import torch
 
 from l3d_app.geometry.sdf import box_sdf
-from l3d_app.render.densities import laplace_cdf
-from l3d_app.render.estimators import StratifiedEstimator
-from l3d_app.render.rendering import points_of, render_rays
+from l3d_app.render.sdf.densities import laplace_cdf
+from l3d_app.render.volume.estimators import StratifiedEstimator
+from l3d_app.render.volume.rendering import points_of, render_rays
 
 
 class SDFBox(torch.nn.Module):

@@ -16,7 +16,7 @@ import torch
 
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays, supersampled_rays
-from l3d_app.render.volume import render_rays_chunked
+from l3d_app.render.volume.renderer import render_rays_chunked
 
 RenderFn = Callable[[torch.Tensor, torch.Tensor], Dict[str, torch.Tensor]]
 

@@ -25,7 +25,7 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.models.gaussians import PARAM_NAMES
 from l3d_app.registry import STRATEGIES
-from l3d_app.render.gaussians import quaternion_to_rotation
+from l3d_app.render.gaussians.rasterize import quaternion_to_rotation
 from l3d_app.runtime.horizon import scheduled_event
 from l3d_app.runtime.random import rand, randn
 from l3d_app.strategies.base import Strategy

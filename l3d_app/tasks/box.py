@@ -37,10 +37,10 @@ from l3d_app.geometry.rays import camera_rays
 from l3d_app.metrics.image import psnr
 from l3d_app.registry import DATASETS, SAMPLERS, TASKS
 from l3d_app.models.sdf_box import SDFBox
-from l3d_app.render.diagnostics import depth_colormap
+from l3d_app.render.volume.diagnostics import depth_colormap
 from l3d_app.render.evaluation import render_views
 from l3d_app.render.turntable import data_up, orbit_cameras, write_turntable
-from l3d_app.render.volume import render_rays_chunked
+from l3d_app.render.volume.renderer import render_rays_chunked
 from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.optim import build_optimizer

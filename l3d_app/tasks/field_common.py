@@ -11,7 +11,7 @@ from l3d_app.geometry.mesh import Mesh
 from l3d_app.metrics.image import psnr, ssim
 from l3d_app.render.evaluation import RenderFn, evaluation_picture, render_views
 from l3d_app.render.field_mesh import priced_mesh_seconds
-from l3d_app.render.mesh_visibility import cull_unseen_faces
+from l3d_app.render.mesh.visibility import cull_unseen_faces
 from l3d_app.runtime.media import save_png
 
 

@@ -8,7 +8,7 @@
 segment kept (at most ``free_space.max_rays`` of them, a random subset: the read-off renders each
 once): from the box entry to where the field's accumulated opacity first reaches
 ``free_space.opacity``, less ``free_space.margin`` (world units)
-(:class:`~l3d_app.render.free_space.FreeRays`). The rays' indices and distances are saved to ``free_space.pt``
+(:class:`~l3d_app.render.volume.free_space.FreeRays`). The rays' indices and distances are saved to ``free_space.pt``
 in the run directory, so ``resume=true`` does not fit them again (with ``free_space.save_levels``, a
 list of other opacity levels, also each ray's distance at those: a diagnosis aid for
 bench/diagnose_free_space.py). With a ``time_budget`` the stage stops at :func:`stage_deadline`:
@@ -27,9 +27,9 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.losses.free_space import termination_distance
 from l3d_app.registry import MODELS, SAMPLERS
-from l3d_app.render.free_space import FreeRays, free_distances
-from l3d_app.render.radiance import render_field_rays
-from l3d_app.render.samplers import ray_aabb
+from l3d_app.render.volume.free_space import FreeRays, free_distances
+from l3d_app.render.volume.radiance import render_field_rays
+from l3d_app.render.volume.samplers import ray_aabb
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import randint, randperm
 from l3d_app.runtime.training import Trainable, train

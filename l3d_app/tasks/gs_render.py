@@ -21,8 +21,8 @@ from l3d_app.geometry.cameras import Cameras, look_at
 from l3d_app.geometry.gaussian_ply import load_gaussian_ply
 from l3d_app.models.gaussians import GaussianModel
 from l3d_app.registry import TASKS
-from l3d_app.render.gaussians import rasterize_gaussians
-from l3d_app.render.gaussians_panels import colorize_depth, require_colormap, side_by_side
+from l3d_app.render.gaussians.rasterize import rasterize_gaussians
+from l3d_app.render.gaussians.panels import colorize_depth, require_colormap, side_by_side
 from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.paths import resolve_path

@@ -41,9 +41,9 @@ from l3d_app.geometry.gaussian_ply import save_gaussian_ply
 from l3d_app.metrics.image import psnr, ssim
 from l3d_app.models.gaussians import colors_from_views, init_from_points
 from l3d_app.registry import DATASETS, STRATEGIES, TASKS
-from l3d_app.render.gaussians import rasterize_gaussians
-from l3d_app.render.gaussians_coverage import shrink_to_coverage
-from l3d_app.render.gaussians_panels import colorize_depth, depth_range, error_map, side_by_side
+from l3d_app.render.gaussians.rasterize import rasterize_gaussians
+from l3d_app.render.gaussians.coverage import shrink_to_coverage
+from l3d_app.render.gaussians.panels import colorize_depth, depth_range, error_map, side_by_side
 from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.lr_schedules import exponential, on_horizon
 from l3d_app.runtime.media import save_gif, to_uint8
@@ -69,7 +69,7 @@ def _initial_model(cfg, raw, data, generator):
         raise UserError(f"init_colors must be views, points or grey, got {mode!r}")
     model = init_from_points(points, colors, opacity=float(cfg.init_opacity), isotropic=bool(cfg.isotropic),
                              scale_factor=float(cfg.init_scale)).to(points.device)
-    if float(cfg.init_max_coverage) > 0:          # bounded start-up cost (render/gaussians_coverage.py)
+    if float(cfg.init_max_coverage) > 0:          # bounded start-up cost (render/gaussians/coverage.py)
         views = data.train[torch.linspace(0, len(data.train) - 1, min(16, len(data.train))).long()]
         model.log_scales.data = shrink_to_coverage(model.means, model.log_scales, model.quats,
                                                    torch.sigmoid(model.opacity_logits), data.cameras[views],

@@ -33,9 +33,9 @@ from l3d_app.metrics.chamfer import chamfer_distance
 from l3d_app.metrics.fscore import fscore
 from l3d_app.models.sdf_net import SDFNetwork
 from l3d_app.registry import DATASETS, TASKS
-from l3d_app.render.sphere_tracing import render_sdf_shaded
+from l3d_app.render.sdf.sphere_tracing import render_sdf_shaded
 from l3d_app.render.turntable import orbit_cameras
-from l3d_app.render.volume import render_rays_chunked
+from l3d_app.render.volume.renderer import render_rays_chunked
 from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint, randperm

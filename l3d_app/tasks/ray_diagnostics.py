@@ -1,7 +1,7 @@
 """ray_diagnostics: the pixel grid, the ray directions and the sample points of one camera.
 
 The pictures of the course's first volume-rendering part, written before anything is
-trained (:mod:`l3d_app.render.diagnostics`): ``pixel_grid.png`` (normalised pixel
+trained (:mod:`l3d_app.render.volume.diagnostics`): ``pixel_grid.png`` (normalised pixel
 coordinates as red/green), ``ray_directions.png`` (``|d|`` of the unit world-space ray
 directions as RGB), ``sample_points.png`` (the points ``o + t d`` of ``n_samples`` evenly
 spaced samples in ``[near, far]`` on every ``stride``-th pixel's ray, coloured by ``t``,
@@ -22,7 +22,7 @@ from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import RENDERERS, TASKS
-from l3d_app.render.diagnostics import depth_colormap, pixel_grid_image, ray_direction_image, ray_sample_points
+from l3d_app.render.volume.diagnostics import depth_colormap, pixel_grid_image, ray_direction_image, ray_sample_points
 from l3d_app.runtime.media import save_png
 from l3d_app.tasks.common import require_positive
 

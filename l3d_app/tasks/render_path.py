@@ -33,7 +33,7 @@ from l3d_app.geometry.camera_paths import (interpolate_cameras, orbit, read_came
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
-from l3d_app.render.density_choice import choose_density
+from l3d_app.render.sdf.density_choice import choose_density
 from l3d_app.runtime.config_values import config_floats, config_words
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.media import save_gif, to_uint8
@@ -50,7 +50,7 @@ PANELS = ("color", "depth", "alpha")
 def _field_renderer(fn, chunk: int, normalize: bool = True) -> Render:
     """Render cameras with ``fn(origins, dirs)``; ``normalize``: unit directions (train_nerf) or
     camera-Z = 1 directions (volsdf), as the task trained with."""
-    from l3d_app.render.volume import render_rays_chunked
+    from l3d_app.render.volume.renderer import render_rays_chunked
 
     def keep(o, d):
         return {k: v for k, v in fn(o, d).items() if k in ("color", "depth", "opacity")}
@@ -78,7 +78,7 @@ def _sampler(conf, state, box, device):
 
 
 def _nerf(conf, state, data, device, chunk) -> Render:
-    from l3d_app.render.radiance import render_field_rays
+    from l3d_app.render.volume.radiance import render_field_rays
 
     box = data.scene_box.tolist()
     model = MODELS.build(conf.model, scene_box=box).to(device).eval()
@@ -94,7 +94,7 @@ def _volsdf(conf, state, data, device, chunk) -> Render:
 def volsdf_rays(conf, state, data, device):
     """A volsdf run's ``fn(origins, dirs)`` (camera-Z = 1 directions), rendered as its evaluation does."""
     from l3d_app.models.sdf_gradients import field_with_gradient
-    from l3d_app.render.sdf_volume import render_sdf_rays
+    from l3d_app.render.sdf.volume import render_sdf_rays
 
     box = data.scene_box.tolist()
     model = MODELS.build(conf.model, scene_box=box).to(device).eval()
@@ -110,7 +110,7 @@ def volsdf_rays(conf, state, data, device):
 
 
 def _gaussian_renderer(model, sh_degree: int, background, tile_size: int = 4) -> Render:
-    from l3d_app.render.gaussians import rasterize_gaussians
+    from l3d_app.render.gaussians.rasterize import rasterize_gaussians
 
     def render(cams: Cameras) -> Dict[str, torch.Tensor]:
         out = rasterize_gaussians(model.means, model.log_scales, model.quats, model.opacity_logits, model.sh,

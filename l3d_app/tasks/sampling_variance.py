@@ -4,7 +4,7 @@ depth against the number of samples per ray, measured over many rays beside the 
 Two densities along a unit ray over ``[near, far]``: a slab of constant density (a hard
 surface-like edge; exact variances for both samplers) and a Gaussian bump (smooth; exact
 for uniform sampling, measured for stratified). For each ``n_samples`` in ``samples``,
-``rays`` independent rays give the estimates (:mod:`l3d_app.render.sampling_variance`).
+``rays`` independent rays give the estimates (:mod:`l3d_app.render.volume.sampling_variance`).
 Writes ``variance.png`` (log-log, measured points and exact lines), ``table.md`` and
 metrics.json: one row per (density, N) and the fitted log-log slopes (uniform -1; stratified
 -2 on the slab, -3 on the bump).
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from l3d_app.errors import UserError
 from l3d_app.registry import TASKS
-from l3d_app.render.sampling_variance import (GaussianBump, Slab, loglog_slope, optical_depth_estimates,
+from l3d_app.render.volume.sampling_variance import (GaussianBump, Slab, loglog_slope, optical_depth_estimates,
                                               stratified_variance_slab, uniform_variance)
 from l3d_app.runtime.plots import line_plot
 from l3d_app.tasks.common import require_positive

@@ -4,7 +4,7 @@ Model: a texture *field* (:class:`~l3d_app.models.texture_field.TextureField`), 
 (world units), so the texture has no UV seams and its resolution does not depend on the
 mesh's vertex density. Rendering: the hard rasteriser of ``renderer=mesh`` (visibility is
 fixed, the mesh does not move) with the field evaluated at every covered pixel's
-interpolated surface point (:class:`~l3d_app.render.field_texture.FieldTextureRenderer`); shading ``unlit`` (flat colour,
+interpolated surface point (:class:`~l3d_app.render.mesh.field_texture.FieldTextureRenderer`); shading ``unlit`` (flat colour,
 like the built-in prior's images) or ``lambert``/``phong`` with a headlight. Only the
 field's parameters are trained; gradients reach them through the per-pixel albedo.
 
@@ -34,7 +34,7 @@ from l3d_app.losses.sds import rgb_to_model_space, sds_loss
 from l3d_app.metrics.prompt_match import score_frames, score_metrics
 from l3d_app.models.texture_field import TextureField
 from l3d_app.registry import DATASETS, TASKS
-from l3d_app.render.field_texture import FieldTextureRenderer
+from l3d_app.render.mesh.field_texture import FieldTextureRenderer
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import render_frames, require_positive

@@ -8,7 +8,7 @@ blob to the raw density, as DreamFusion does), so optimisation starts from a sof
 Each step renders ``batch_views`` random orbit cameras at ``image_size`` pixels (0: the
 prior's image size, at most 64; renders are resized to the prior's size before encoding)
 by volume rendering (ray-box segments, stratified samples,
-:func:`~l3d_app.render.radiance.render_field_rays`), with a shading drawn at random
+:func:`~l3d_app.render.volume.radiance.render_field_rays`), with a shading drawn at random
 (``shading_probs``):
 
 * ``albedo``: the field's colour;
@@ -29,7 +29,7 @@ acts on every model-space element): ``lambda_entropy`` x the mean binary entropy
 opacities and ``lambda_orient`` x the mean over rays of ``sum_i w_i max(0, n_i . d)^2``
 (Ref-NeRF orientation), the latter applied on the steps that compute
 normals (every shading but ``albedo``, which skips the normals' double backward: about half
-the cost of a step). An :class:`~l3d_app.render.occupancy.OccupancyGrid` (``occupancy.*``,
+the cost of a step). An :class:`~l3d_app.render.volume.occupancy.OccupancyGrid` (``occupancy.*``,
 started from the blob's extent) skips samples in empty cells.
 
 Latent iterations (``latent_iter_ratio``): with a latent prior (Stable Diffusion, or the
@@ -65,7 +65,7 @@ from l3d_app.metrics.prompt_match import score_frames, score_metrics
 from l3d_app.models.blob_field import BlobField
 from l3d_app.registry import MODELS, SAMPLERS, TASKS
 from l3d_app.render.evaluation import depth_picture
-from l3d_app.render.field_shading import (SCENE_BOX, SHADINGS, normals_as_latent, render_shaded_views,
+from l3d_app.render.volume.field_shading import (SCENE_BOX, SHADINGS, normals_as_latent, render_shaded_views,
                                           shading_sampler)
 from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.media import save_gif, save_png

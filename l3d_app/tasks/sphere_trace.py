@@ -2,7 +2,7 @@
 
 No mesh is made: every pixel's ray is marched through the data source's analytic SDF
 (:func:`l3d_app.data.surfaces.make_sdf`, the shape and parameters of ``data``) by
-:func:`l3d_app.render.sphere_tracing.sphere_trace_box` inside the shape's bounds, and
+:func:`l3d_app.render.sdf.sphere_tracing.sphere_trace_box` inside the shape's bounds, and
 shaded by its autograd normal. Writes ``turntable.gif``, ``frame0.png``, ``depth0.png``
 (depth normalised by its maximum, viridis, as the course shows depth) and metrics.json:
 ``hit_fraction``, ``mean_iterations`` (SDF evaluations per ray), ``max_abs_sdf_at_hits``
@@ -17,8 +17,8 @@ from l3d_app.data.surfaces import make_sdf
 from l3d_app.errors import UserError
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import CAMERA_PATHS, TASKS
-from l3d_app.render.diagnostics import depth_colormap
-from l3d_app.render.sphere_tracing import render_sdf_shaded, sphere_trace_box
+from l3d_app.render.volume.diagnostics import depth_colormap
+from l3d_app.render.sdf.sphere_tracing import render_sdf_shaded, sphere_trace_box
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.progress import progress
 from l3d_app.tasks.common import require_nonnegative, require_positive

@@ -19,7 +19,7 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.metrics.stereo_error import binned_rmse, noisy_depth, simulate_depth_error
 from l3d_app.registry import DATASETS, RENDERERS, TASKS
-from l3d_app.render.diagnostics import depth_colormap
+from l3d_app.render.volume.diagnostics import depth_colormap
 from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.plots import line_plot

@@ -135,8 +135,8 @@ def visualise(model: SVRModel, data: SVRData, objects: torch.Tensor, views: torc
               generator: torch.Generator, out_png: Path, out_gif: Optional[Path]) -> torch.Tensor:
     """Rows of panels: input image | ground truth | prediction | prediction points coloured
     by their error. Stills from the input camera (PNG); optionally a turntable GIF."""
-    from l3d_app.render.mesh_renderer import MeshRenderer
-    from l3d_app.render.points import PointRenderer
+    from l3d_app.render.mesh.renderer import MeshRenderer
+    from l3d_app.render.points.renderer import PointRenderer
 
     size, n_frames = int(cfg.turntable_size), int(cfg.num_frames)
     mesh_r = MeshRenderer(shading="lambert", background=(1.0, 1.0, 1.0), light_direction=(0.4, 1.0, 0.7))

@@ -29,7 +29,7 @@ import torch
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import DATASETS, MODELS, SAMPLERS, TASKS
 from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
-from l3d_app.render.radiance import render_field_rays
+from l3d_app.render.volume.radiance import render_field_rays
 from l3d_app.render.turntable import color_depth_frames
 from l3d_app.runtime.config_values import config_words
 from l3d_app.runtime.media import save_png

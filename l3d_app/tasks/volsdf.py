@@ -1,7 +1,7 @@
 """volsdf: a neural SDF + colour network trained from posed images by SDF volume rendering.
 
 ``python main.py task=volsdf beta=0.1`` (``density=auto``, default: NeuS where a quarter or more of the
-training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.render.density_choice`;
+training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.render.sdf.density_choice`;
 ``alpha``/``beta`` at the top level), ``density=volsdf`` or ``density=neus s=64``. Pieces:
 
 * model (``model=sdf_grid_field``, default): :class:`~l3d_app.models.sdf_grid.SDFGridField`,
@@ -10,7 +10,7 @@ training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.ren
   gradient (no double backward) feeds the colour network (normal) and the eikonal loss. Grid
   levels are switched on coarse to fine: ``levels_start`` levels, one more every
   ``level_every`` steps. ``model=sdf_field`` is the slower harmonic-MLP alternative.
-* density: VolSDF ``sigma = alpha * Psi_beta(-f)`` (:class:`~l3d_app.render.densities.LaplaceDensity`).
+* density: VolSDF ``sigma = alpha * Psi_beta(-f)`` (:class:`~l3d_app.render.sdf.densities.LaplaceDensity`).
   ``beta`` is the initial value: ``beta_mode=anneal`` (default) takes it geometrically to
   ``beta_end`` over ``anneal_fraction`` of the steps, ``beta_mode=learnable`` trains it with
   the field (floor ``beta_min``), ``beta_mode=fixed`` keeps it. ``alpha=null`` (default) ties
@@ -22,13 +22,13 @@ training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.ren
   the learned surface shrinks by that much to match the images (0.023 on the 0.28 sphere at
   beta 0.01, measured 0.023-0.026).
   ``density_along_ray=true`` reads ``f / |n . d|`` instead (the distance to the surface along the ray,
-  :func:`~l3d_app.render.densities.distance_along_ray`): the transition in ``t`` is the same at every angle,
+  :func:`~l3d_app.render.sdf.densities.distance_along_ray`): the transition in ``t`` is the same at every angle,
   so the silhouettes no longer sit outside the zero level set (option; docs/measured/volsdf.md).
-* sampling only near the surface: a trilinear :class:`~l3d_app.render.sdf_volume.SDFGridCache`
+* sampling only near the surface: a trilinear :class:`~l3d_app.render.sdf.volume.SDFGridCache`
   of the SDF (``cache_resolution``^3, refreshed every ``cache_every`` steps, from ``cache_late_from`` on every
   ``cache_late_every`` when set; no grad) gives
   ``n_coarse`` look-ups per ray whose VolSDF weights place ``n_fine`` field samples at the
-  zero level set (:func:`~l3d_app.render.sdf_volume.render_sdf_rays`); metrics report both
+  zero level set (:func:`~l3d_app.render.sdf.volume.render_sdf_rays`); metrics report both
   counts (``samples_per_ray``, ``fine_samples_per_ray``). Evaluation renders put 8 of them at the
   field's own first zero crossing once ``beta`` is below what the cache resolves
   (``sampler.eval_anchor``, ``sampler.anchor_when=narrow``).
@@ -59,7 +59,7 @@ training cameras look from below the scene, VolSDF otherwise, :mod:`~l3d_app.ren
   and ``free_space.ray_margin`` ``margin``; ``free_space.ray_loss=log_depth`` takes ``log(1 + tau)`` of that
   opacity's optical depth instead (:func:`~l3d_app.losses.free_space.log_depth`: no saturation behind a lid);
   with ``free_space.ray_cut=multi_view`` an end is cut back where another training view's stretch stops in front
-  of it: :meth:`~l3d_app.render.free_space.FreeRays.multi_view_cut`). With a ``time_budget`` the stage
+  of it: :meth:`~l3d_app.render.volume.free_space.FreeRays.multi_view_cut`). With a ``time_budget`` the stage
   gets at most half of what the budget leaves after the final work predicted from the timed "before"
   validation (:func:`~l3d_app.tasks.free_space_common.stage_deadline`), and is skipped (logged,
   ``free_space_skipped`` in the metrics) where that is under 90 s: at 256 px the test views cost
@@ -110,14 +110,14 @@ from l3d_app.models.level_schedule import LevelSchedule
 from l3d_app.models.sdf_gradients import field_with_gradient
 from l3d_app.models.sdf_grid import pretrain_field
 from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
-from l3d_app.render.density_choice import candidate_configs, choose_density
-from l3d_app.render.densities import transition_width
+from l3d_app.render.sdf.density_choice import candidate_configs, choose_density
+from l3d_app.render.sdf.densities import transition_width
 from l3d_app.render.evaluation import render_views
 from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
-from l3d_app.render.free_space import near_surface_weight
-from l3d_app.render.rgbd import true_depth_maps
-from l3d_app.render.sdf_volume import render_sdf_rays
-from l3d_app.render.sphere_tracing import render_sdf_shaded
+from l3d_app.render.volume.free_space import near_surface_weight
+from l3d_app.render.mesh.rgbd import true_depth_maps
+from l3d_app.render.sdf.volume import render_sdf_rays
+from l3d_app.render.sdf.sphere_tracing import render_sdf_shaded
 from l3d_app.render.turntable import color_depth_frames
 from l3d_app.runtime.config_values import config_words
 from l3d_app.runtime.media import save_png

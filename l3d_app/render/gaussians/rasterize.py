@@ -17,7 +17,7 @@ at +0.5, see :mod:`l3d_app.geometry.cameras`):
    contribution is skipped anyway, so the tiling is exact (a dense every-Gaussian-at-every-
    pixel render gives the same image) while faint splats touch fewer tiles. ``radii`` is
    the matching circle radius ``r sqrt(lambda_max)`` (for screen-size pruning).
-3. **Tile binning** (:mod:`l3d_app.render.gaussians_composite`). Every (splat, tile)
+3. **Tile binning** (:mod:`l3d_app.render.gaussians.composite`). Every (splat, tile)
    overlap of the splat's bounding box is enumerated and sorted by one int64 key
    ``tile * 2^32 + depth key``; each tile's pixels are tested against its splats in padded
    batches and only the (pixel, splat) pairs with ``alpha >= 1/255`` are kept, as one flat
@@ -42,9 +42,9 @@ from typing import Dict, Optional, Sequence, Union
 import torch
 
 from l3d_app.geometry.cameras import Cameras
-from l3d_app.render.sh import sh_to_color
-from l3d_app.render.gaussians_project import ProjectFunction, quat_rotation
-from l3d_app.render.gaussians_composite import (ALPHA_MAX, ALPHA_MIN, T_MIN, CompositeFunction, bin_tiles,
+from l3d_app.render.gaussians.sh import sh_to_color
+from l3d_app.render.gaussians.project import ProjectFunction, quat_rotation
+from l3d_app.render.gaussians.composite import (ALPHA_MAX, ALPHA_MIN, T_MIN, CompositeFunction, bin_tiles,
                                                 composite_pairs, splat_pixel_pairs)
 
 LOW_PASS = 0.3
@@ -70,7 +70,7 @@ def project_gaussians(means: torch.Tensor, log_scales: torch.Tensor, quats: torc
         means: (N, 3) world positions; log_scales: (N, 3) log standard deviations (world
             units); quats: (N, 4) ``(w, x, y, z)``; opacity: (N,) in [0, 1].
         cams: B cameras (internal convention); near: near-plane depth (world units).
-        custom_backward: per camera one :class:`~l3d_app.render.gaussians_project.ProjectFunction`
+        custom_backward: per camera one :class:`~l3d_app.render.gaussians.project.ProjectFunction`
             (hand-written backward); False: the plain-autograd reference below (same values).
     Returns dict of
         means2d (B, N, 2) pixels (u right, v down); conic (B, N, 3) ``(A, B, C)`` of the

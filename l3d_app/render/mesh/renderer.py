@@ -15,8 +15,8 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.registry import RENDERERS
-from l3d_app.render.rasterize import project_vertices, rasterize_projected
-from l3d_app.render.shading import Lights, Material, interpolate_vertices, normalize, phong
+from l3d_app.render.mesh.rasterize import project_vertices, rasterize_projected
+from l3d_app.render.mesh.shading import Lights, Material, interpolate_vertices, normalize, phong
 from l3d_app.runtime.config_values import config_floats, config_rows
 from l3d_app.geometry.textures import sample_texture_t
 
@@ -59,7 +59,7 @@ class MeshRenderer:
             specular), 'flat' (face normals + specular), 'unlit' (albedo only).
         background: RGB of uncovered pixels.
         ambient, diffuse, specular: material coefficients (scalar or RGB) of the
-            :class:`~l3d_app.render.shading.Material`; the ambient light is white.
+            :class:`~l3d_app.render.mesh.shading.Material`; the ambient light is white.
         shininess: Phong exponent.
         light_direction: world direction FROM the surface TOWARDS a directional light; None
             (default) = a headlight, i.e. a directional light towards each camera.

@@ -43,8 +43,8 @@ def volsdf_config(cfg: Mapping) -> Dict[str, Any]:
 
 def neus_config(cfg: Mapping) -> Dict[str, Any]:
     """The ``density=neus`` config an ``auto`` config stands for: ``s = 1 / beta``, ``s_end = 1 / beta_end``,
-    the same schedule mode and fraction (a mode NeuS lacks is refused by :class:`~l3d_app.render.neus.NeuSDensity`)."""
-    for key in ("beta", "beta_end"):     # VolSDF's own wording (render/densities.py)
+    the same schedule mode and fraction (a mode NeuS lacks is refused by :class:`~l3d_app.render.sdf.neus.NeuSDensity`)."""
+    for key in ("beta", "beta_end"):     # VolSDF's own wording (render/sdf/densities.py)
         value = cfg[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
             raise UserError(f"{key} must be > 0 (world units), got {value}")

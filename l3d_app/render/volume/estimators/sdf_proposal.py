@@ -8,13 +8,13 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.registry import SAMPLERS
-from l3d_app.render.densities import transition_width
-from l3d_app.render.estimators.base import Box, Estimator, Samples, segment_ends
-from l3d_app.render.estimators.zero_crossing import first_crossing, refine_crossing
-from l3d_app.render.rendering import pack_samples
-from l3d_app.render.sdf_cache import SDFGridCache
-from l3d_app.render.samplers import sample_pdf, stratified_samples
-from l3d_app.render.volume import composite
+from l3d_app.render.sdf.densities import transition_width
+from l3d_app.render.volume.estimators.base import Box, Estimator, Samples, segment_ends
+from l3d_app.render.volume.estimators.zero_crossing import first_crossing, refine_crossing
+from l3d_app.render.volume.rendering import pack_samples
+from l3d_app.render.sdf.cache import SDFGridCache
+from l3d_app.render.volume.samplers import sample_pdf, stratified_samples
+from l3d_app.render.volume.renderer import composite
 from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.random import rand
 

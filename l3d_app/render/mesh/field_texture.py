@@ -6,8 +6,8 @@ from __future__ import annotations
 import torch
 
 from l3d_app.geometry.mesh import Mesh
-from l3d_app.render.mesh_renderer import MeshRenderer
-from l3d_app.render.shading import interpolate_vertices
+from l3d_app.render.mesh.renderer import MeshRenderer
+from l3d_app.render.mesh.shading import interpolate_vertices
 
 
 class FieldTextureRenderer(MeshRenderer):

@@ -1,6 +1,6 @@
 """Tile binning and front-to-back compositing of projected 2D Gaussians (one view).
 
-The fast path of :func:`l3d_app.render.gaussians.rasterize_gaussians`:
+The fast path of :func:`l3d_app.render.gaussians.rasterize.rasterize_gaussians`:
 
 1. :func:`bin_tiles` enumerates every (splat, tile) overlap of the splats' bounding boxes
    and sorts them with one argsort of the int64 key ``tile * 2^32 + depth_key`` (the key is

@@ -7,7 +7,7 @@ from typing import Optional, Sequence, Tuple
 import torch
 
 from l3d_app.errors import UserError
-from l3d_app.render.samplers import ray_aabb
+from l3d_app.render.volume.samplers import ray_aabb
 
 Box = Tuple[Sequence[float], Sequence[float]]
 Samples = Tuple[torch.Tensor, torch.Tensor, torch.Tensor]

@@ -1,15 +1,15 @@
 """Volume rendering of an SDF field (VolSDF or NeuS): the SDF-specific callback of
-:func:`~l3d_app.render.rendering.render_rays`.
+:func:`~l3d_app.render.volume.rendering.render_rays`.
 
-Samples come from an estimator (usually :class:`~l3d_app.render.estimators.SDFCacheProposal`:
+Samples come from an estimator (usually :class:`~l3d_app.render.volume.estimators.SDFCacheProposal`:
 a trilinear SDF cache places a few field samples at the zero level set); the field gives
 SDF and colour (and, when it has one, its exact spatial gradient, for normals and the
 eikonal loss) at each segment's start; a ``DENSITIES`` module
-(:class:`~l3d_app.render.densities.VolSDFDensity`, :class:`~l3d_app.render.neus.NeuSDensity`)
+(:class:`~l3d_app.render.sdf.densities.VolSDFDensity`, :class:`~l3d_app.render.sdf.neus.NeuSDensity`)
 turns the SDF of a ray's samples into segment optical depths:
 
 - ``volsdf``: ``tau_i = alpha * Psi_beta(-f_i) * (t_end_i - t_start_i)`` (with ``along_ray``: ``f_i / |n_i . d|``,
-  the distance to the surface along the ray, :func:`~l3d_app.render.densities.distance_along_ray`),
+  the distance to the surface along the ray, :func:`~l3d_app.render.sdf.densities.distance_along_ray`),
 - ``neus``:   ``tau_i = max(log Phi_s(f_i) - log Phi_s(f_{i+1}), 0)`` (last segment: 0).
 """
 
@@ -19,9 +19,9 @@ from typing import Callable, Dict, Optional, Tuple
 
 import torch
 
-from l3d_app.render.rendering import points_of, render_rays
-from l3d_app.render.sdf_cache import SDFGridCache  # noqa: F401  (re-exported)
-from l3d_app.render.volume import Background
+from l3d_app.render.volume.rendering import points_of, render_rays
+from l3d_app.render.sdf.cache import SDFGridCache  # noqa: F401  (re-exported)
+from l3d_app.render.volume.renderer import Background
 
 SdfColorFn = Callable[[torch.Tensor, torch.Tensor], Tuple[torch.Tensor, ...]]
 

@@ -8,15 +8,15 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.registry import SAMPLERS
-from l3d_app.render.estimators.base import Box, Estimator, Samples, segment_ends
-from l3d_app.render.rendering import pack_samples
-from l3d_app.render.samplers import stratified_samples
+from l3d_app.render.volume.estimators.base import Box, Estimator, Samples, segment_ends
+from l3d_app.render.volume.rendering import pack_samples
+from l3d_app.render.volume.samplers import stratified_samples
 
 
 @SAMPLERS.register("stratified")
 class StratifiedEstimator(Estimator):
     """``n_samples`` stratified distances per ray on [near, far] (see
-    :func:`~l3d_app.render.samplers.stratified_samples`: linspace without ``perturb``, one
+    :func:`~l3d_app.render.volume.samplers.stratified_samples`: linspace without ``perturb``, one
     uniform draw per bin with it). Segment ``i`` ends at sample ``i + 1``, the last at ``far``.
     Rays that miss the scene box get no samples.
 

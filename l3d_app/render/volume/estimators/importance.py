@@ -8,11 +8,11 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.registry import SAMPLERS
-from l3d_app.render.estimators.base import Box, Samples, segment_ends
-from l3d_app.render.estimators.stratified import StratifiedEstimator
-from l3d_app.render.rendering import pack_samples
-from l3d_app.render.samplers import importance_samples
-from l3d_app.render.volume import composite
+from l3d_app.render.volume.estimators.base import Box, Samples, segment_ends
+from l3d_app.render.volume.estimators.stratified import StratifiedEstimator
+from l3d_app.render.volume.rendering import pack_samples
+from l3d_app.render.volume.samplers import importance_samples
+from l3d_app.render.volume.renderer import composite
 
 
 @SAMPLERS.register("importance")
@@ -21,7 +21,7 @@ class ImportanceEstimator(StratifiedEstimator):
 
     ``n_samples`` stratified samples are evaluated by ``field.density`` WITHOUT gradient;
     their compositing weights (plus ``padding``) are a pdf from which ``n_fine`` more samples
-    are drawn (:func:`~l3d_app.render.samplers.importance_samples`); the union (S + n_fine per
+    are drawn (:func:`~l3d_app.render.volume.samplers.importance_samples`); the union (S + n_fine per
     ray, sorted) is returned for the rendering pass, which alone carries the loss.
     ``sampling`` needs ``field=`` (anything with ``density(points (N, 3)) -> (N,)``).
     """

@@ -17,8 +17,8 @@ from typing import Callable, Optional, Sequence, Tuple
 import torch
 
 from l3d_app.errors import UserError
-from l3d_app.render.rendering import radiance_fn, render_rays
-from l3d_app.render.samplers import ray_aabb
+from l3d_app.render.volume.rendering import radiance_fn, render_rays
+from l3d_app.render.volume.samplers import ray_aabb
 from l3d_app.runtime.random import rand, randint
 
 
@@ -28,7 +28,7 @@ def opacity_distance(t_starts: torch.Tensor, transmittance: torch.Tensor, alphas
 
     Args:
         t_starts, transmittance, alphas, ray_indices: (N,) packed samples as
-            :func:`~l3d_app.render.rendering.render_rays` returns them (``transmittance`` = light
+            :func:`~l3d_app.render.volume.rendering.render_rays` returns them (``transmittance`` = light
             reaching the sample, ``alphas`` = its opacity).
         n_rays: R. level: in (0, 1].
     Returns:

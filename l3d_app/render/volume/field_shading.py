@@ -1,6 +1,6 @@
 """Shaded renders of a radiance field (DreamFusion-style): albedo, Lambertian, textureless or
 normal shading with normals from the density gradient, plus the orientation penalty, all
-composited by :func:`~l3d_app.render.rendering.render_rays` as one 7-channel "colour"
+composited by :func:`~l3d_app.render.volume.rendering.render_rays` as one 7-channel "colour"
 (colour 3 | orientation penalty 1 | normal 3).
 """
 
@@ -14,9 +14,9 @@ import torch.nn.functional as F
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays
-from l3d_app.render.estimators import StratifiedEstimator
-from l3d_app.render.radiance import render_field_rays
-from l3d_app.render.volume import render_rays_chunked
+from l3d_app.render.volume.estimators import StratifiedEstimator
+from l3d_app.render.volume.radiance import render_field_rays
+from l3d_app.render.volume.renderer import render_rays_chunked
 from l3d_app.runtime.random import rand
 
 SHADINGS = ("albedo", "lambertian", "textureless", "normal")

@@ -21,7 +21,7 @@ from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.mesh_parts import submesh
 from l3d_app.geometry.visibility import observed_mask
-from l3d_app.render.rgbd import true_depth_maps
+from l3d_app.render.mesh.rgbd import true_depth_maps
 
 
 @torch.no_grad()

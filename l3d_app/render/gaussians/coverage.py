@@ -3,7 +3,7 @@
 The cost of a Gaussian render (forward and backward) grows with the number of (pixel,
 splat) pairs it composites, about ``coverage x H x W`` where the coverage is the summed
 screen area of the splats' discs (the culling radius of
-:func:`~l3d_app.render.gaussians.project_gaussians`) over the image area. Splats drawn at
+:func:`~l3d_app.render.gaussians.rasterize.project_gaussians`) over the image area. Splats drawn at
 random in a scene box with neighbour-distance scales overlap ~70 deep per pixel; trained
 ones ~30 (measured on the built-in scene), so the first steps of such a run cost several
 times the later ones. :func:`shrink_to_coverage` scales the initial splats down until the
@@ -18,7 +18,7 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
-from l3d_app.render.gaussians import project_gaussians
+from l3d_app.render.gaussians.rasterize import project_gaussians
 
 
 @torch.no_grad()

@@ -1,6 +1,6 @@
 """EWA projection of 3D Gaussians into one camera, with a hand-written backward.
 
-Same forward as :func:`l3d_app.render.gaussians.project_gaussians` (its plain-autograd
+Same forward as :func:`l3d_app.render.gaussians.rasterize.project_gaussians` (its plain-autograd
 reference, which the tests compare with), as one :class:`torch.autograd.Function` so that
 the ~100 small per-Gaussian ops do not each record an autograd node. Per Gaussian:
 

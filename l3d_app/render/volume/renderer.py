@@ -40,7 +40,7 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import RENDERERS
-from l3d_app.render.samplers import stratified_samples
+from l3d_app.render.volume.samplers import stratified_samples
 
 Background = Union[None, float, Sequence[float], torch.Tensor]
 

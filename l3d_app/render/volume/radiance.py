@@ -11,8 +11,8 @@ from typing import Callable, Dict, Optional
 
 import torch
 
-from l3d_app.render.rendering import radiance_fn, render_rays
-from l3d_app.render.volume import Background
+from l3d_app.render.volume.rendering import radiance_fn, render_rays
+from l3d_app.render.volume.renderer import Background
 
 Field = Callable[[torch.Tensor, torch.Tensor], tuple]
 
@@ -24,7 +24,7 @@ def render_field_rays(field: Field, origins: torch.Tensor, dirs: torch.Tensor, e
     """Render R rays (unit ``dirs``) of ``field`` with samples from ``estimator``.
 
     ``density_field`` (default ``field``): what an estimator that probes the scene (importance)
-    calls ``density`` on. Returns :func:`~l3d_app.render.rendering.render_rays`' outputs
+    calls ``density`` on. Returns :func:`~l3d_app.render.volume.rendering.render_rays`' outputs
     (color (R, C), depth (R,), opacity (R,), per-sample weights, samples_per_ray = field
     evaluations per ray).
     """

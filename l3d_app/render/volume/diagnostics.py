@@ -22,7 +22,7 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays, pixel_centers
-from l3d_app.render.samplers import stratified_samples
+from l3d_app.render.volume.samplers import stratified_samples
 
 
 def pixel_grid_image(height: int, width: int) -> torch.Tensor:
@@ -44,7 +44,7 @@ def ray_sample_points(cams: Cameras, near: float, far: float, n_samples: int,
     """Sample points along the rays of the FIRST camera.
 
     ``n_samples`` evenly spaced ``t`` in ``[near, far]`` (world units along unit rays, the
-    deterministic :func:`~l3d_app.render.samplers.stratified_samples`) on every
+    deterministic :func:`~l3d_app.render.volume.samplers.stratified_samples`) on every
     ``stride``-th pixel in each direction. Returns points (R * S, 3) and their t (R * S,).
     """
     if not 0 <= near < far:

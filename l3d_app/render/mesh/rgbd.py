@@ -10,7 +10,7 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.mesh import Mesh
-from l3d_app.render.mesh_renderer import MeshRenderer, scale_cameras
+from l3d_app.render.mesh.renderer import MeshRenderer, scale_cameras
 
 
 def rgbd_from_mesh(mesh: Mesh, cams: Cameras, renderer=None) -> Dict[str, torch.Tensor]:

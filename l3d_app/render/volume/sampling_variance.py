@@ -5,8 +5,8 @@ along a ray (world units along a unit ray). Two unbiased estimators with ``N`` s
 
 - uniform: ``t_i ~ U(near, far)`` i.i.d., ``tau_hat = L / N * sum_i sigma(t_i)`` (``L = far - near``);
   ``Var = (L * int sigma^2 dt - tau^2) / N``, the 1/N Monte-Carlo rate;
-- stratified (NeRF's, :func:`l3d_app.render.samplers.stratified_samples` with ``perturb``): one
-  ``t_i`` uniform in each bin ``[e_i, e_{i+1}]`` (:func:`~l3d_app.render.samplers.bin_edges` of the unperturbed samples: the end bins are
+- stratified (NeRF's, :func:`l3d_app.render.volume.samplers.stratified_samples` with ``perturb``): one
+  ``t_i`` uniform in each bin ``[e_i, e_{i+1}]`` (:func:`~l3d_app.render.volume.samplers.bin_edges` of the unperturbed samples: the end bins are
   half as wide as the others),
   ``tau_hat = sum_i sigma(t_i) (e_{i+1} - e_i)``; only bins where ``sigma`` varies add variance:
   for a slab of constant density ``s`` the bins cut by an edge of the slab, each adding
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 
 from l3d_app.errors import UserError
-from l3d_app.render.samplers import bin_edges, stratified_samples
+from l3d_app.render.volume.samplers import bin_edges, stratified_samples
 from l3d_app.runtime.random import rand
 
 METHODS = ("uniform", "stratified")

@@ -24,7 +24,7 @@ from typing import List, Sequence, Tuple, Union
 
 import torch
 
-from l3d_app.render.rasterize import Fragments
+from l3d_app.render.mesh.rasterize import Fragments
 
 Color = Union[float, Sequence[float], torch.Tensor]
 

@@ -32,7 +32,7 @@ from typing import Callable, NamedTuple, Sequence, Tuple, Union
 import torch
 
 from l3d_app.errors import UserError
-from l3d_app.render.samplers import ray_aabb
+from l3d_app.render.volume.samplers import ray_aabb
 
 SDFn = Callable[[torch.Tensor], torch.Tensor]
 Bound = Union[float, torch.Tensor]

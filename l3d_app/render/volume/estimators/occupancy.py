@@ -7,16 +7,16 @@ from typing import Optional, Sequence, Tuple
 import torch
 
 from l3d_app.registry import SAMPLERS
-from l3d_app.render.estimators.stratified import StratifiedEstimator
-from l3d_app.render.estimators.base import Samples
-from l3d_app.render.occupancy import OccupancyGrid
-from l3d_app.render.rendering import pack_samples
+from l3d_app.render.volume.estimators.stratified import StratifiedEstimator
+from l3d_app.render.volume.estimators.base import Samples
+from l3d_app.render.volume.occupancy import OccupancyGrid
+from l3d_app.render.volume.rendering import pack_samples
 
 
 @SAMPLERS.register("occupancy")
 class OccupancyEstimator(StratifiedEstimator):
     """Stratified samples inside ``scene_box`` kept only in occupied cells of an
-    :class:`~l3d_app.render.occupancy.OccupancyGrid` (its knobs below). Dropping a sample is
+    :class:`~l3d_app.render.volume.occupancy.OccupancyGrid` (its knobs below). Dropping a sample is
     exact for a field that is empty there: its optical depth would be 0.
 
     ``update(step, field)`` refreshes the grid from ``field.density`` every ``update_every``

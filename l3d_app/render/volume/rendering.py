@@ -1,6 +1,6 @@
 """One volume-rendering function for packed ray samples (nerfacc's ``rendering()`` split).
 
-An estimator (:mod:`l3d_app.render.estimators`, registry ``SAMPLERS``) decides WHERE to
+An estimator (:mod:`l3d_app.render.volume.estimators`, registry ``SAMPLERS``) decides WHERE to
 sample and returns packed segments::
 
     t_starts (N,), t_ends (N,)   segment [t_start, t_end) along ray ``ray_indices`` (world
@@ -9,7 +9,7 @@ sample and returns packed segments::
                                  ray are contiguous and sorted front to back
 
 :func:`render_rays` then asks ``rgb_sigma_fn(t_starts, t_ends, ray_indices)`` WHAT is there
-and composites (emission-absorption, see :mod:`l3d_app.render.volume` for the maths). The
+and composites (emission-absorption, see :mod:`l3d_app.render.volume.renderer` for the maths). The
 callback returns either a tuple ``(rgb (N, C), sigma (N,))`` (density in 1 / world units;
 optical depth ``sigma * (t_end - t_start)``) or a dict with ``"rgb"`` and exactly one of
 ``"sigma"``, ``"alpha"`` (opacity in [0, 1], e.g. the course's box rule) or ``"tau"`` (the
@@ -18,7 +18,7 @@ other (N, ...) entries of the dict are returned unchanged under ``"aux"``.
 
 Compositing scatters the packed values into a dense (R, S_max) layout (S_max = most samples
 of any ray, the rest padded with zero optical depth) and uses
-:func:`~l3d_app.render.volume.composite`: log-space transmittance, exact for huge
+:func:`~l3d_app.render.volume.renderer.composite`: log-space transmittance, exact for huge
 ``sigma * delta``. Padding adds exact zeros, so a ray's result does not depend on the others.
 """
 
@@ -29,7 +29,7 @@ from typing import Callable, Dict, Optional, Tuple, Union
 
 import torch
 
-from l3d_app.render.volume import Background, composite
+from l3d_app.render.volume.renderer import Background, composite
 
 RgbSigmaFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor],
                       Union[Tuple[torch.Tensor, torch.Tensor], Dict[str, torch.Tensor]]]

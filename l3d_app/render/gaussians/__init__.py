@@ -1,0 +1,1 @@
+"""Gaussian splatting: projection, tile binning and compositing, spherical harmonics, pictures."""
