@@ -26,8 +26,9 @@ markdown table and a plot of PSNR against seconds (``--doc``, default
 ``docs/benchmark_scenes.md`` + ``.png``).
 
 The table is a ledger: every row carries the commit it was measured at (``+dirty`` when the
-working tree had uncommitted changes), the date and the machine's load average at the end of
-the run, and is kept in ``docs/benchmark_scenes.json`` (next to ``--doc``). A call that runs
+working tree had uncommitted changes), the machine (cores, CPU model, torch's CPU capability) and
+its load average at the end of the run, and is kept in ``docs/benchmark_scenes.json`` (next to
+``--doc``). ``bench/ledger_tables.py`` writes one method's rows into its measured page. A call that runs
 some scenes or methods replaces those rows and keeps the others as they were measured, so a
 re-run of one method does not need the hours of the others (``--fresh`` drops the old rows).
 """
@@ -55,7 +56,7 @@ EXTRA = {"train_nerf": ["extract_mesh=true"],
          "nerf_baseline": ["gif_frames=0", "before_after=false", "eval_every=25", "eval_views=1"]}
 # A held-out scene that a method's choices looked at: its row for that method is not a held-out
 # reading (docs/benchmark_scenes.md, "Choices made on these scenes").
-DIAGNOSIS = {("thin", "volsdf"): "diagnosis (w_mask was added after volsdf failed here)",
+DIAGNOSIS = {("thin", "volsdf"): "diagnosis (volsdf's w_mask was chosen after reading it)",
              ("around", "volsdf"): "held out; diagnosis of evaluation cost (wall time only)"}
 TARGETS = {"train_nerf": "psnr >= 32", "gs_train": "psnr >= 33",
            "volsdf": "chamfer <= 1% diag, F1@0.02 obs >= 0.8, psnr >= 28, phantom < 5%"}
@@ -91,15 +92,32 @@ def run_method(method: str, scene: Path, out: Path, threads: int, baseline_budge
 
 
 def measured_at() -> Dict[str, object]:
-    """Where and when a row was measured: short commit (``+dirty`` with uncommitted changes),
-    UTC date, 1-minute load average."""
+    """What a row measured and where: short commit (``+dirty`` with uncommitted changes), the
+    machine, 1-minute load average."""
     def git(*a):
         return subprocess.run(["git", *a], cwd=REPO, capture_output=True, text=True).stdout.strip()
     commit = git("rev-parse", "--short", "HEAD") or "unknown"
     if git("status", "--porcelain", "--untracked-files=no", "--", "l3d_app", "conf", "main.py"):
         commit += "+dirty"
-    return {"commit": commit, "date": time.strftime("%Y-%m-%d", time.gmtime()),
-            "load": round(os.getloadavg()[0], 1)}
+    return {"commit": commit, "machine": machine(), "load": round(os.getloadavg()[0], 1)}
+
+
+def machine() -> str:
+    """The machine a row ran on: cores, CPU model and torch's CPU capability, e.g.
+    ``2 cores, AMD EPYC 7B13, AVX512``."""
+    model = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), "")
+    except OSError:
+        pass
+    try:
+        import torch
+
+        capability = torch.backends.cpu.get_cpu_capability()
+    except Exception:            # no torch build that reports it
+        capability = ""
+    return ", ".join(p for p in (f"{os.cpu_count()} cores", model, capability) if p)
 
 
 def merge_rows(old: List[dict], new: List[dict]) -> List[dict]:
@@ -184,7 +202,7 @@ DENSITY_NAMES = {"neus": "NeuS", "volsdf": "VolSDF"}
 
 def table(rows: List[dict]) -> str:
     head = ("| scene | role | method | test PSNR | test SSIM | seconds | size | chamfer % diag (whole / observed) "
-            "| F1@0.02 obs | F1@0.05 obs | phantom % | measured (commit, date, load) |\n"
+            "| F1@0.02 obs | F1@0.05 obs | phantom % | measured (commit, machine, load) |\n"
             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     lines = [head]
     for r in rows:
@@ -195,7 +213,7 @@ def table(rows: List[dict]) -> str:
         lines.append(f"| {r['scene']} | {role_of(r)} | {method} | {fmt(r.get('psnr'), '.2f')} | "
                      f"{fmt(r.get('ssim'), '.3f')} | {fmt(r.get('seconds'), '.0f')} | {size or ''} | {cham} | "
                      f"{fmt(r.get('f1_02_obs'), '.3f')} | {fmt(r.get('f1_05_obs'), '.3f')} | {fmt(r.get('phantom_pct'), '.1f')} | "
-                     f"{r.get('commit', '?')}, {r.get('date', '?')}, {load_text(r)} |")
+                     f"{r.get('commit', '?')}, {r.get('machine', 'machine not recorded')}, {load_text(r)} |")
     return "\n".join(lines)
 
 
@@ -278,7 +296,7 @@ def main() -> None:
 
 def section_text(last_call: str, ledger_name: str, rows: List[dict]) -> str:
     """The doc's table section: the last call, how rows are kept, the targets, the table."""
-    return (f"{BEGIN}\n{last_call} Each row says the commit, date and "
+    return (f"{BEGIN}\n{last_call} Each row says the commit, machine and "
             f"load average of its own run; rows not re-run by a call are kept from `{ledger_name}`. "
             "Targets on held-out scenes: "
             + "; ".join(f"{k}: {v}" for k, v in TARGETS.items()) + ".\n\n" + table(rows) + f"\n{END}")

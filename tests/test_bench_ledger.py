@@ -1,6 +1,6 @@
 """The held-out benchmark's ledger (bench/bench_scenes.py): a call that re-runs some
 (scene, method) pairs replaces exactly those rows and keeps the others with their own
-commit, date and load, so a table never mixes figures without saying where each came from."""
+commit, machine and load, so a table never mixes figures without saying where each came from."""
 
 import json
 
@@ -13,7 +13,7 @@ def _bench():
 
 def _row(scene, method, psnr, commit):
     return {"scene": scene, "role": "held out", "method": method, "psnr": psnr, "commit": commit,
-            "date": "2026-11-25", "load": 1.0, "seconds": 100.0}
+            "machine": "2 cores, CPU X", "load": 1.0, "seconds": 100.0}
 
 
 def test_merge_replaces_only_the_rows_that_were_run_and_keeps_the_order():
@@ -33,18 +33,18 @@ def test_merge_replaces_only_the_rows_that_were_run_and_keeps_the_order():
 def test_table_names_each_rows_commit_and_the_committed_ledger_is_complete():
     bench = _bench()
     line = bench.table([_row("above", "volsdf", 25.0, "ccc")]).splitlines()[-1]
-    assert line.startswith("| above | held out | volsdf | 25.00 |") and line.endswith("| ccc, 2026-11-25, 1.0 |")
+    assert line.startswith("| above | held out | volsdf | 25.00 |") and line.endswith("| ccc, 2 cores, CPU X, 1.0 |")
     copied = {**_row("thin", "gs_train", 38.0, "ddd"), "load": 2.0, "transcribed_from_table": True}
-    assert bench.table([copied]).splitlines()[-1].endswith("| ddd, 2026-11-25, about 2.0 (from the older table) |")
+    assert bench.table([copied]).splitlines()[-1].endswith("| ddd, 2 cores, CPU X, about 2.0 (from the older table) |")
     ledger = json.loads((REPO / "docs" / "benchmark_scenes.json").read_text())
-    assert all(r.get("commit") and r.get("date") for r in ledger)
+    assert all(r.get("commit") and r.get("machine") for r in ledger)
     doc = (REPO / "docs" / "benchmark_scenes.md").read_text()
     for r in ledger:                       # the markdown table is the ledger, row for row
         assert bench.table([r]).splitlines()[-1] in doc
 
 
 def test_a_scene_a_methods_choice_looked_at_is_not_called_held_out_for_it(tmp_path):
-    """volsdf's w_mask was added after it failed on thin: thin's volsdf row says diagnosis, the
+    """volsdf's w_mask was chosen after reading thin: thin's volsdf row says diagnosis, the
     other methods' rows on thin stay held out; --render-only rewrites the table from the ledger
     and keeps the section's 'Last call' sentence."""
     bench = _bench()
