@@ -31,7 +31,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 PKG = REPO / "l3d_app"
 BASE = {"errors", "registry", "exports", "prompt_vocab", "__init__"}  # below every layer
-MIDDLE = {"render", "models", "losses", "metrics", "data", "diffusion", "strategies"}
+MIDDLE = {"render", "models", "losses", "metrics", "data", "diffusion", "strategies", "viewer"}
 ALLOWED = {  # layer -> layers its modules may import (besides their own layer)
     "base": {"base"},
     "runtime": {"base"},
@@ -42,6 +42,7 @@ ALLOWED = {  # layer -> layers its modules may import (besides their own layer)
     "models": {"render", "geometry", "runtime", "base"},
     "data": {"render", "geometry", "runtime", "base"},
     "strategies": {"models", "render", "geometry", "runtime", "base"},  # act on a model's tensors
+    "viewer": {"geometry", "runtime", "base"},  # the browser page: takes snapshot / render callables
     "losses": {"render", "metrics", "diffusion", "geometry", "runtime", "base"},  # rendering losses render
     "tasks": MIDDLE | {"geometry", "runtime", "base"},
     "report": {"runtime", "base"},

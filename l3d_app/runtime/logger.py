@@ -36,11 +36,14 @@ class RunLogger:
         self._events_before = set(Path(self.log_dir).glob("events.out.tfevents.*"))
         self.writer: Optional[SummaryWriter] = SummaryWriter(self.log_dir) if enabled else None
         self.records = 0          # log calls so far (scalars, images, texts, hparams)
+        self.watchers = []        # callables (tag, value, step) told of every scalar (the live viewer)
 
     def scalar(self, tag: str, value: float, step: int) -> None:
         self.records += 1
         if self.writer is not None:
             self.writer.add_scalar(tag, float(value), step)
+        for watch in self.watchers:
+            watch(tag, float(value), step)
 
     def log_scalars(self, values: Mapping[str, float], step: int) -> None:
         """Log several scalars at ``step`` plus the wall-clock seconds since the run began."""

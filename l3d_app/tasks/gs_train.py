@@ -50,6 +50,7 @@ from l3d_app.runtime.media import save_gif, to_uint8
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import background_parameter, require_positive
+from l3d_app.tasks.viewer_common import finish_viewer, gaussian_view, start_viewer
 
 
 def _initial_model(cfg, raw, data, generator):
@@ -128,6 +129,8 @@ def gs_train(cfg, ctx) -> dict:
         return rasterize_gaussians(model.means, model.log_scales3, model.quats, model.opacity_logits, model.sh,
                                    deg, data.cameras[i], background["rgb"].clamp(0, 1), tile_size=int(cfg.tile_size))
 
+    live = start_viewer(cfg, ctx, data, *gaussian_view(model, background["rgb"], degree, int(cfg.tile_size)))
+
     def step_fn(step: int):
         info["t0"], info["c0"] = time.perf_counter(), time.process_time()
         i = int(tr[int(randint(0, len(tr), (1,), ctx.generator))])
@@ -194,6 +197,7 @@ def gs_train(cfg, ctx) -> dict:
                        after_step=after_step, log_every=int(cfg.log_every), time_budget=float(cfg.time_budget),
                        reserve=float(cfg.reserve), reserve_evals=len(data.test) / len(data.val),
                        horizon=horizon if (on_budget or refine) else None)
+    finish_viewer(live, ctx, result.step)
     with torch.no_grad():
         pred, target, panel, test = evaluate(data.test, degree(result.step))
     test = {k: round(v, 4) for k, v in test.items()}

@@ -39,6 +39,7 @@ from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import (background_parameter, require_mesh_formats, require_mesh_resolution,
                                  require_positive)
+from l3d_app.tasks.viewer_common import finish_viewer, radiance_view, start_viewer
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
                                         mesh_seconds_to_keep, write_turntables)
 
@@ -74,6 +75,8 @@ def train_nerf(cfg, ctx) -> dict:
     def render_fn(o, d, **kw):
         return render_field_rays(field, o, d, sampler, background=background["rgb"].clamp(0, 1),
                                  density_field=model, **kw)
+
+    live = start_viewer(cfg, ctx, data, *radiance_view(model, sampler, background["rgb"], int(cfg.chunk)))
 
     def step_fn(step: int) -> Dict[str, torch.Tensor]:
         stats["_t0"] = time.perf_counter()
@@ -123,6 +126,7 @@ def train_nerf(cfg, ctx) -> dict:
                        reserve=float(cfg.reserve) + mesh_reserve,
                        reserve_evals=evals_after_training(     # the test views (the gif takes what is left)
                            len(val), len(data.test)), eval_price=before_seconds)
+    finish_viewer(live, ctx, result.step)
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator)
         test, picture, _ = evaluate(data.test)                                  # the one test evaluation

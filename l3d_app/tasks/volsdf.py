@@ -127,6 +127,7 @@ from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import (background_parameter, require_fade_end, require_mesh_formats,
                                  require_mesh_resolution, require_nonnegative, require_positive)
+from l3d_app.tasks.viewer_common import finish_viewer, sdf_view, start_viewer
 from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
                                         mesh_seconds_to_keep, write_turntables)
 from l3d_app.tasks.free_space_common import FILE as FREE_SPACE_FILE
@@ -259,6 +260,8 @@ def volsdf(cfg, ctx) -> dict:
     def render(o, d, **kw):
         return render_sdf_rays(field_fn, o, d, sampler, dens, field=model,
                               background=background["rgb"].clamp(0, 1), **kw)
+
+    live = start_viewer(cfg, ctx, data, *sdf_view(model, sampler, dens, background["rgb"], int(cfg.chunk)))
 
     def evaluate(views: torch.Tensor, supersample: int):
         views = views.to(ctx.device)
@@ -402,6 +405,7 @@ def volsdf(cfg, ctx) -> dict:
                        resume=bool(cfg.resume), desc="volsdf", after_step=after_step,
                        time_budget=float(cfg.time_budget), reserve=reserve,
                        reserve_evals=evals_after, horizon=horizon, eval_price=before_seconds)
+    finish_viewer(live, ctx, result.step)
     model.eval()
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator, force=True)
