@@ -34,8 +34,8 @@ def _train(tmp: Path, name: str, *overrides: str) -> Path:
 def runs(tmp_path_factory):
     torch.set_num_threads(1)
     tmp = tmp_path_factory.mktemp("view")
-    return {"gs_train": _train(tmp, "gs", "task=gs_train", "iters=40", "eval_every=40", "n_init=800", "sh_every=20"),
-            "train_nerf": _train(tmp, "nerf", "task=train_nerf", "iters=40", "eval_every=40", "gif_frames=0",
+    return {"gs_train": _train(tmp, "gs", "task=gs_train", "iters=20", "eval_every=20", "n_init=800", "sh_every=10"),
+            "train_nerf": _train(tmp, "nerf", "task=train_nerf", "iters=20", "eval_every=20", "gif_frames=0",
                                  "before_after=false", "batch_rays=512")}
 
 
