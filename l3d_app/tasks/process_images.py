@@ -10,9 +10,11 @@ seconds, and where the model is. ``metrics.json``: ``given``, ``registered``,
 
 from __future__ import annotations
 
+import inspect
+
 from l3d_app.data.photos import images_capture, video_capture
 from l3d_app.errors import UserError
-from l3d_app.registry import TASKS, check_keywords, plain
+from l3d_app.registry import TASKS, plain
 
 
 @TASKS.register("process_images")
@@ -22,8 +24,7 @@ def process_images(cfg, ctx) -> dict:
     if kind not in ("images", "video"):
         raise UserError(f"process_images solves data=images or data=video, got data={kind}")
     solve = images_capture if kind == "images" else video_capture
-    args = {k: v for k, v in knobs.items() if k in solve.__code__.co_varnames}
-    check_keywords(f"data '{kind}'", solve, args)
+    args = {k: v for k, v in knobs.items() if k in inspect.signature(solve).parameters}   # the SfM knobs; the rest are data=colmap's
     folder, report, reused = solve(**args)
     how = "reused from the cache" if reused else "solved now"
     print(f"{report.line()} ({how}; the sparse model: {folder / 'sparse'})", flush=True)
