@@ -25,7 +25,9 @@ steps that fit over ``iters`` (predicted from the recent seconds per step, as th
 does), so a budget-stopped run still ends with a refinement phase.
 Validation views are evaluated every ``eval_every`` steps (TensorBoard ``val/``, with a
 prediction | truth | error | depth picture); the test views once at the end.
-Outputs: ``test_views.gif``, ``progress.gif`` (a validation view over training),
+``init_points`` > 0 keeps that many of the data's initial points (a seeded random subset, as the course
+subsamples its cloud). Outputs: ``test_views.gif``, ``progress.gif`` (the course's grid: up to
+``progress_views`` validation views over training, their ground truth below),
 ``point_cloud.ply`` (3DGS layout), ``metrics.json``.
 """
 
@@ -44,17 +46,25 @@ from l3d_app.registry import DATASETS, STRATEGIES, TASKS
 from l3d_app.render.gaussians.rasterize import rasterize_gaussians
 from l3d_app.render.gaussians.coverage import shrink_to_coverage
 from l3d_app.render.gaussians.panels import colorize_depth, depth_range, error_map, side_by_side
+from l3d_app.render.gaussians.progress_grid import progress_grid
 from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.lr_schedules import exponential, on_horizon
 from l3d_app.runtime.media import save_gif, to_uint8
-from l3d_app.runtime.random import rand, randint
+from l3d_app.runtime.random import rand, randint, randperm
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import background_parameter, require_positive
 from l3d_app.tasks.viewer_common import finish_viewer, gaussian_view, start_viewer
 
 
 def _initial_model(cfg, raw, data, generator):
-    points, colors = getattr(raw, "points", None), None
+    points, colors, point_colors = getattr(raw, "points", None), None, getattr(raw, "point_colors", None)
+    keep = int(cfg.get("init_points", 0) or 0)
+    if keep < 0:
+        raise UserError(f"init_points must be >= 0 (0: all of the data's points), got {keep}")
+    if points is not None and 0 < keep < len(points):      # the course's subsampled initial cloud
+        subset = randperm(len(points), generator)[:keep]
+        points = points[subset]
+        point_colors = None if point_colors is None else point_colors[subset]
     if points is None:
         lo, hi = data.scene_box[0].cpu(), data.scene_box[1].cpu()
         points = lo + (hi - lo) * rand((int(cfg.n_init), 3), generator)
@@ -63,7 +73,7 @@ def _initial_model(cfg, raw, data, generator):
     if mode == "views":
         colors = colors_from_views(points, data.images[data.train], data.cameras[data.train])
     elif mode == "points":
-        colors = getattr(raw, "point_colors", None)
+        colors = point_colors
         if colors is None:
             raise UserError(f"init_colors=points: data '{cfg.data.name}' has no point colours (use views or grey)")
     elif mode != "grey":
@@ -187,8 +197,8 @@ def gs_train(cfg, ctx) -> dict:
         return pred, target, panel, {"psnr": float(psnr(pred, target)), "ssim": float(ssim(pred, target))}
 
     def eval_fn(step: int):
-        pred, _, panel, m = evaluate(data.val, degree(step))
-        prog_frames.append(torch.from_numpy(to_uint8(panel)))
+        pred, truth, panel, m = evaluate(data.val, degree(step))
+        prog_frames.append(torch.from_numpy(to_uint8(progress_grid(pred, truth, int(cfg.progress_views)))))
         return {**m, "n_gaussians": model.num, "images": {"pred_truth_error_depth": panel}}
 
     with ctx.stopwatch.stage("train"):
