@@ -46,7 +46,7 @@ ALLOWED = {  # layer -> layers its modules may import (besides their own layer)
     "losses": {"render", "metrics", "diffusion", "geometry", "runtime", "base"},  # rendering losses render
     "tasks": MIDDLE | {"geometry", "runtime", "base"},
     "report": {"runtime", "base"},
-    "app": MIDDLE | {"tasks", "sweep_jobs", "geometry", "runtime", "base"},
+    "app": MIDDLE | {"tasks", "sweep_jobs", "report", "geometry", "runtime", "base"},   # report: the sweep callback
     "sweep_jobs": {"base"},      # the app's sweep bookkeeping (reads Hydra's job config)
 }
 CONFIG_LIBS = ("omegaconf", "hydra")
