@@ -276,6 +276,8 @@ def test_robustness_command(compose, cache_dir, tmp_path, capsys):
     import imageio.v2 as imageio
     for kind in ("cls", "seg"):            # a row per angle, the first test cloud of each of the 3 classes
         assert imageio.imread(tmp_path / "a" / f"rotation_{kind}.png").shape[:2] == (2 * 32, 3 * 32)
+    for name in ("robustness_rotation.png", "robustness_points.png"):
+        assert (tmp_path / "a" / name).stat().st_size > 0
     # from a saved checkpoint: same figures without training
     run_task(compose("task=pointnet_robustness", *overrides, "robust_kinds=[cls]",
                      f"cls_checkpoint={tmp_path / 'a' / 'cls' / 'best.pt'}"), out_dir=tmp_path / "b")

@@ -18,7 +18,7 @@ split:
 as the model saw them, a row per angle in ``rotation_<kind>.png`` (cls: green where the class was right,
 red where wrong; seg: the predicted parts' colours), also per angle in TensorBoard (``rotation/<kind>``).
 Figures go to metrics.json (``cls_rot<deg>``, ``cls_pts<n>``, ``seg_rot<deg>``,
-``seg_pts<n>``, plus ``tables``; ``<kind>_ms_per_cloud``: wall milliseconds per test cloud of
+``seg_pts<n>``, plus ``tables``; the curves in ``robustness_rotation.png`` and ``robustness_points.png``; ``<kind>_ms_per_cloud``: wall milliseconds per test cloud of
 one evaluation pass on all its points, ``<kind>_n_params``), TensorBoard (``robustness/*`` against the degrees or
 point count, and the markdown tables as text) and ``robustness.md``.
 """
@@ -40,6 +40,7 @@ from l3d_app.runtime.config_values import config_floats, config_words
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.media import save_png
+from l3d_app.runtime.plots import line_plot
 from l3d_app.runtime.seed import seed_everything
 from l3d_app.tasks.point_common import evaluate, fit, load_data, load_model, require_axis, rotations
 
@@ -154,6 +155,12 @@ def pointnet_robustness(cfg, ctx) -> dict:
                    _table(name, "points", pts_rows)]
     text = "\n".join(report) + "\n"
     ctx.path("robustness.md").write_text(text)
+    for table, xlabel, fname in (("rotation", f"rotation about {cfg.rotation_axis} (degrees)", "robustness_rotation.png"),
+                                 ("num_points", "points per test cloud", "robustness_points.png")):
+        curves = {k: ([float(x) for x in rows], list(rows.values())) for k, t in metrics["tables"].items()
+                  for rows in [{x: v for x, v in t[table].items() if v == v}]}
+        line_plot(ctx.path(fname), curves, xlabel=xlabel, ylabel="test accuracy (seg: per point)",
+                  logx=table == "num_points", title="pointnet_robustness")
     ctx.logger.text("robustness/tables", text)
     if "cls" in kinds:
         metrics["accuracy"] = metrics[f"cls_rot{degrees[0]:g}"] if degrees else float("nan")
