@@ -50,7 +50,7 @@ def test_train_nerf_learns_the_background_of_a_capture(compose, tmp_path):
     _grey_blender(tmp_path / "scene")
     common = ["task=train_nerf", "data=blender", f"data.root={tmp_path / 'scene'}", "data.background=white",
               "data.val_every=0", "iters=60", "eval_every=60", "batch_rays=64", "gif_frames=0", "tensorboard=false",
-              "threads=1", "lr=0.02"]
+              "threads=1", "optim.lr=0.02"]
     learnt = run_task(compose(*common, "learn_background=true", "objective=psnr"), out_dir=tmp_path / "learn")
     fixed = run_task(compose(*common, "learn_background=false", "objective=psnr"), out_dir=tmp_path / "fixed")
     m = json.loads((tmp_path / "learn" / "metrics.json").read_text())

@@ -19,7 +19,7 @@ from l3d_app.data.nerf_formats import blender
 from l3d_app.data.nerfstudio import nerfstudio
 from l3d_app.errors import UserError
 from l3d_app.geometry.gaussian_ply import load_gaussian_ply, save_gaussian_ply
-from l3d_app.runtime.training import read_checkpoint
+from l3d_app.runtime.checkpoints import read_checkpoint
 
 
 def _ns(root, meta):

@@ -9,7 +9,7 @@ import torch
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.seed import seed_everything
-from l3d_app.runtime.training import Trainable, train
+from l3d_app.runtime.training import LoopSpec, Trainable, train
 
 
 def run_loop(tmp_path, precision, iters=200):
@@ -26,7 +26,7 @@ def run_loop(tmp_path, precision, iters=200):
         y = model(x)
         seen.append(y.dtype)
         return {"loss": ((y.float() - x @ target.T) ** 2).mean()}
-    train(ctx, trainable, step, iters=iters)
+    train(ctx, trainable, step, LoopSpec(iters))
     return model, seen, target
 
 

@@ -3,7 +3,7 @@
 :func:`render_views` renders cameras through any ``render_fn(origins, dirs) -> {"color",
 "depth", "opacity"}`` in chunks (optionally ``supersample``^2 rays per pixel, averaged);
 :func:`evaluation_picture` is the picture every evaluation logs
-(``l3d_app/tasks/field_common.py: evaluate_views`` adds the scores):
+(:func:`l3d_app.pipelines.views.evaluate_views` adds the scores):
 one row per view, ``prediction | truth | |error| (x4, clamped) | depth`` (depth: white near,
 dark far over pixels with opacity > 0.5, black elsewhere).
 """

@@ -14,6 +14,7 @@ from l3d_app.render.field_mesh import FIELD_MESH_FORMATS
 from l3d_app.runtime.config_values import config_words
 from l3d_app.runtime.device import available_host_memory
 from l3d_app.runtime.progress import progress
+from l3d_app.runtime.training import LoopSpec
 
 
 def require_positive(cfg, *keys: str) -> None:
@@ -92,6 +93,16 @@ def require_run_keys(cfg) -> None:
     starts, so a bad turntable size or frame rate fails now, not after training."""
     require_nonnegative(cfg, *(k for k in RUN_KEYS_NONNEGATIVE if k in cfg))
     require_positive(cfg, *(k for k in RUN_KEYS_POSITIVE if k in cfg))
+
+
+def loop_spec(cfg, desc: str, iters: int = 0, **kwargs) -> LoopSpec:
+    """The training loop's spec from a task's config: ``iters`` (0: ``cfg.iters``), ``eval_every``,
+    ``checkpoint_every`` and ``resume`` where the config has them, the bar's ``desc``; ``kwargs`` add
+    or override :class:`~l3d_app.runtime.training.LoopSpec` fields."""
+    known = {k: cfg[k] for k in ("eval_every", "checkpoint_every", "resume") if cfg.get(k) is not None}
+    spec = {"eval_every": int(known.get("eval_every", 0)), "checkpoint_every": int(known.get("checkpoint_every", 0)),
+            "resume": bool(known.get("resume", False)), **kwargs}
+    return LoopSpec(int(iters or cfg.iters), desc=desc, **spec)
 
 
 @torch.no_grad()

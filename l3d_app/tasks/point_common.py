@@ -46,10 +46,11 @@ from l3d_app.registry import DATASETS, MODELS, RENDERERS
 from l3d_app.render.charts import confusion_image
 from l3d_app.render.palette import palette
 from l3d_app.runtime import distributed
+from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.torch_files import read_torch_file
-from l3d_app.runtime.training import Trainable, log_test, train
+from l3d_app.runtime.training import LoopSpec, Trainable, log_test, train
 from l3d_app.tasks.common import check_output_knobs, require_nonnegative, require_positive
 
 BEST = "best.pt"
@@ -280,10 +281,9 @@ def fit(cfg, ctx, data: PointCloudData, kind: str, dist: Optional[distributed.Di
 
     spe_eval = steps_per_epoch * int(cfg.eval_every_epochs)
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step_fn, iters, eval_fn=eval_fn, eval_every=spe_eval,
-                       checkpoint_every=steps_per_epoch * int(cfg.checkpoint_every_epochs or 0),
-                       resume=bool(cfg.resume), desc=f"pointnet_{kind}",
-                       reserve_evals=evals_in_the_test_pass(cfg, data))
+        spec = LoopSpec(iters, spe_eval, steps_per_epoch * int(cfg.checkpoint_every_epochs or 0), bool(cfg.resume),
+                        f"pointnet_{kind}")
+        result = train(ctx, trainable, step_fn, spec, eval_fn, TimeBudget.of(ctx, evals_after=evals_in_the_test_pass(cfg, data)))
     use_best = bool(cfg.use_best) and dist.is_main and ctx.path(BEST).exists()
     if use_best:
         model.load_state_dict(torch.load(ctx.path(BEST), map_location="cpu", weights_only=False)["state"])

@@ -34,12 +34,12 @@ from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
 from l3d_app.render.sdf.density_choice import choose_density
+from l3d_app.runtime.checkpoints import read_checkpoint
 from l3d_app.runtime.config_values import config_floats, config_words
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.media import save_gif, to_uint8
 from l3d_app.runtime.paths import resolve_path
 from l3d_app.runtime.progress import progress
-from l3d_app.runtime.training import read_checkpoint
 
 Render = Callable[[Cameras], Dict[str, torch.Tensor]]
 PATHS = ("orbit", "spiral", "interp", "camera_path")
