@@ -414,7 +414,7 @@ def test_neural_sdf_needs_points_with_extent_and_both_splits(compose, tmp_path):
 
 
 def test_an_unreadable_pointnet_checkpoint_is_named(tmp_path):
-    from l3d_app.tasks.point_common import load_model
+    from l3d_app.pipelines.point_nets import load_model
 
     (tmp_path / "best.pt").write_text("garbage\n")
     with pytest.raises(UserError, match=r"best.pt is not a readable pointnet best.pt checkpoint \("):

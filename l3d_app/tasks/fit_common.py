@@ -13,11 +13,12 @@ from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.sampling import sample_points_on_mesh
 from l3d_app.registry import CAMERA_PATHS, DATASETS, RENDERERS
+from l3d_app.render.evaluation import render_frames
 from l3d_app.render.previews import frames_within_budget
 from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.random import held_out_seed
-from l3d_app.tasks.common import check_output_knobs, render_frames, require_nonnegative, require_positive
+from l3d_app.tasks.common import check_output_knobs, require_nonnegative, require_positive
 
 Shape = Union[Mesh, PointCloud, None]
 

@@ -26,6 +26,7 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.losses.free_space import termination_distance
+from l3d_app.models.background import background_parameter
 from l3d_app.registry import MODELS, SAMPLERS
 from l3d_app.render.volume.free_space import FreeRays, free_distances
 from l3d_app.render.volume.radiance import render_field_rays
@@ -34,7 +35,7 @@ from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import randint, randperm
 from l3d_app.runtime.training import LoopSpec, Trainable, train
-from l3d_app.tasks.common import background_parameter, require_fade_end, require_nonnegative, require_positive
+from l3d_app.tasks.common import require_fade_end, require_nonnegative, require_positive
 
 FILE = "free_space.pt"
 

@@ -29,6 +29,7 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.geometry.gaussian_ply import save_gaussian_ply
 from l3d_app.metrics.image import psnr, ssim
+from l3d_app.models.background import background_parameter
 from l3d_app.models.gaussians import colors_from_views, init_from_points
 from l3d_app.registry import DATASETS, STRATEGIES, TASKS
 from l3d_app.render.gaussians.coverage import shrink_to_coverage
@@ -39,7 +40,7 @@ from l3d_app.runtime.lr_schedules import exponential
 from l3d_app.runtime.media import save_gif, to_uint8
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import background_parameter, loop_spec, require_positive
+from l3d_app.tasks.common import loop_spec, require_positive
 
 
 def _initial_model(cfg, raw, data, generator):

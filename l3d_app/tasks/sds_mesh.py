@@ -34,10 +34,11 @@ from l3d_app.losses.sds import rgb_to_model_space, sds_loss
 from l3d_app.metrics.prompt_match import score_frames, score_metrics
 from l3d_app.models.texture_field import TextureField
 from l3d_app.registry import DATASETS, TASKS
+from l3d_app.render.evaluation import render_frames
 from l3d_app.render.mesh.field_texture import FieldTextureRenderer
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.common import loop_spec, render_frames, require_positive
+from l3d_app.tasks.common import loop_spec, require_positive
 from l3d_app.tasks.prior_common import load_prior
 
 __all__ = ["sds_mesh", "load_prior", "score_frames", "score_metrics"]  # the last three: sds_nerf's old import path

@@ -23,13 +23,14 @@ import torch
 from l3d_app.losses.svr import svr_loss
 from l3d_app.metrics.f1_curve import f1_table
 from l3d_app.models.svr_model import MODEL_FILE, build_svr_model, n_params, save_svr_model
+from l3d_app.pipelines.svr import geometry_of, make_batch, predict_points
 from l3d_app.registry import TASKS
 from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import loop_spec, require_nonnegative, require_positive
-from l3d_app.tasks.svr_common import (evaluate_and_report, geometry_of, load_data, make_batch, plain, predict_points,
-                                      require_eval_view, require_thresholds, test_objects)
+from l3d_app.tasks.svr_common import (evaluate_and_report, load_data, plain, require_eval_view, require_thresholds,
+                                      test_objects)
 
 VAL_SEED_OFFSET = 99  # the validation stream: seed + this (any fixed value; chosen once)
 

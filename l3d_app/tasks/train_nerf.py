@@ -27,6 +27,7 @@ from typing import Dict
 import torch
 
 from l3d_app.geometry.rays import camera_rays
+from l3d_app.models.background import background_parameter
 from l3d_app.pipelines.views import BeforeAfter, evaluate_views
 from l3d_app.registry import DATASETS, MODELS, SAMPLERS, TASKS
 from l3d_app.render.field_mesh import extract_mesh, save_field_mesh, seconds_per_grid_point
@@ -39,8 +40,7 @@ from l3d_app.runtime.media import save_png
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import (background_parameter, loop_spec, require_mesh_formats, require_mesh_resolution,
-                                 require_positive)
+from l3d_app.tasks.common import loop_spec, require_mesh_formats, require_mesh_resolution, require_positive
 from l3d_app.tasks.field_common import write_field_turntables
 
 

@@ -34,7 +34,9 @@ from l3d_app.diffusion.builtin_prior import SPACES, BuiltinPrior, export_state, 
 from l3d_app.diffusion.sampling import ddim_sample
 from l3d_app.errors import UserError
 from l3d_app.metrics.prompt_match import match_rate
+from l3d_app.prompt_vocab import full_prompts
 from l3d_app.registry import TASKS
+from l3d_app.render.charts import image_grid
 from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.lr_schedules import warmup_cosine
 from l3d_app.runtime.media import save_png
@@ -42,7 +44,6 @@ from l3d_app.runtime.paths import resolve_path
 from l3d_app.runtime.random import held_out_seed
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import loop_spec, require_fraction, require_positive
-from l3d_app.tasks.prior_common import full_prompts, image_grid
 
 
 def _spaces(space: str):

@@ -106,6 +106,7 @@ from l3d_app.losses.free_space import (fade_to_zero, free_stretch_loss, occupied
 from l3d_app.losses.occupancy import coverage_bce
 from l3d_app.losses.patch_consistency import PatchConsistency, surface_crossing
 from l3d_app.metrics.surface_scores import surface_scores
+from l3d_app.models.background import background_parameter
 from l3d_app.models.level_schedule import LevelSchedule
 from l3d_app.models.sdf_gradients import field_with_gradient
 from l3d_app.models.sdf_grid import pretrain_field
@@ -128,8 +129,8 @@ from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import (background_parameter, loop_spec, require_fade_end, require_mesh_formats,
-                                 require_mesh_resolution, require_nonnegative, require_positive)
+from l3d_app.tasks.common import (loop_spec, require_fade_end, require_mesh_formats, require_mesh_resolution,
+                                 require_nonnegative, require_positive)
 from l3d_app.tasks.field_common import write_field_turntables
 from l3d_app.tasks.free_space_common import FILE as FREE_SPACE_FILE
 from l3d_app.tasks.free_space_common import (MIN_STAGE_SECONDS, check_free_space_config, fit_free_rays,
