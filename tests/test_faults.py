@@ -68,11 +68,11 @@ def test_bad_data_folders_exit_2_with_one_line(tmp_path):
         assert not (tmp_path / "run").exists()       # nothing written: the run directory is removed too
 
 
-def test_a_resumed_train_nerf_run_keeps_its_before_picture_and_figure(compose, tmp_path, monkeypatch):
+def test_a_resumed_train_nerf_run_keeps_its_before_picture_and_figure(compose, tmp_path, monkeypatch, data_cache):
     """before_val_psnr and before_after.png come from the untrained field: a resumed run carries
     them in its checkpoint (it cannot render them again), equal to the uninterrupted run's."""
     args = ("task=train_nerf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16", "data.n_train=4",
-            "data.n_val=1", "data.n_test=1", "time_budget=0", "tensorboard=false", f"data.cache_dir={tmp_path / 'c'}")
+            "data.n_val=1", "data.n_test=1", "time_budget=0", "tensorboard=false", f"data.cache_dir={data_cache}")
     run_task(compose(*args), out_dir=tmp_path / "full")
     monkeypatch.setenv("L3D_STOP_AT_STEP", "2")
     with pytest.raises(RunInterrupted):
@@ -94,10 +94,10 @@ RESUMED_RATES = {
 
 
 @pytest.mark.parametrize("task", sorted(RESUMED_RATES))
-def test_a_resumed_runs_timings_cover_the_whole_run(compose, tmp_path, monkeypatch, task):
+def test_a_resumed_runs_timings_cover_the_whole_run(compose, tmp_path, monkeypatch, task, data_cache):
     """train_seconds (and a task's rays_per_second) of a resumed run count every step, the
     interrupted part's too: rays_per_second x train_seconds / batch_rays gives back all the steps."""
-    cache = () if task == "fit_point" else (f"data.cache_dir={tmp_path / 'c'}",)
+    cache = () if task == "fit_point" else (f"data.cache_dir={data_cache}",)
     args = (*RESUMED_RATES[task], "tensorboard=false", *cache)
     monkeypatch.setenv("L3D_STOP_AT_STEP", "2")
     with pytest.raises(RunInterrupted):
@@ -112,12 +112,12 @@ def test_a_resumed_runs_timings_cover_the_whole_run(compose, tmp_path, monkeypat
         assert steps == pytest.approx(whole["iters"], rel=1e-3), steps
 
 
-def test_resuming_a_finished_neus_anneal_run_gives_back_its_figures(compose, tmp_path):
+def test_resuming_a_finished_neus_anneal_run_gives_back_its_figures(compose, tmp_path, data_cache):
     """resume=true on a finished volsdf run with an annealed NeuS density runs no step and evaluates the
     loaded field again: with the checkpoint's last s (not the configured start) its figures are the run's
     own (before the fix it evaluated with s = 3.0 and reported other figures)."""
     args = (*RESUMED_RATES["volsdf"], "density=neus", "s=3.0", "s_mode=anneal", "s_end=100", "ncc.weight=0",
-            "tensorboard=false", f"data.cache_dir={tmp_path / 'c'}")
+            "tensorboard=false", f"data.cache_dir={data_cache}")
     run_task(compose(*args), out_dir=tmp_path)
     first = read(tmp_path)
     run_task(compose(*args, "resume=true"), out_dir=tmp_path)

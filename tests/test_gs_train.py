@@ -51,10 +51,10 @@ TINY = ("task=gs_train", "data.image_size=32", "data.n_train=20", "data.n_val=2"
         "sh_every=40")
 
 
-def test_gs_train_tiny_run_reaches_a_quality_floor_val_during_test_once(compose, tmp_path):
+def test_gs_train_tiny_run_reaches_a_quality_floor_val_during_test_once(compose, tmp_path, data_cache):
     torch.set_num_threads(1)
     cfg = compose(*TINY, "iters=120", "eval_every=40", "strategy.start=40", "strategy.every=40",
-                  "strategy.densify_min_steps_left=40", f"data.cache_dir={tmp_path / 'cache'}")   # densifies at 40, 80
+                  "strategy.densify_min_steps_left=40", f"data.cache_dir={data_cache}")   # densifies at 40, 80
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     hist = m["history"]
@@ -74,18 +74,18 @@ def test_gs_train_tiny_run_reaches_a_quality_floor_val_during_test_once(compose,
         assert (tmp_path / "run" / f).is_file()
 
 
-def test_gs_train_needs_validation_views(compose, tmp_path):
+def test_gs_train_needs_validation_views(compose, tmp_path, data_cache):
     from l3d_app.errors import UserError
 
-    cfg = compose(*TINY, "iters=2", "data.n_val=0", "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
+    cfg = compose(*TINY, "iters=2", "data.n_val=0", "tensorboard=false", f"data.cache_dir={data_cache}")
     with pytest.raises(UserError, match="validation views"):
         run_task(cfg, out_dir=tmp_path / "run")
 
 
-def test_gs_train_course_strategy_keeps_a_fixed_isotropic_set(compose, tmp_path):
+def test_gs_train_course_strategy_keeps_a_fixed_isotropic_set(compose, tmp_path, data_cache):
     torch.set_num_threads(1)
     cfg = compose(*TINY, "strategy=course", "iters=60", "eval_every=30", "tensorboard=false",
-                  f"data.cache_dir={tmp_path / 'cache'}")
+                  f"data.cache_dir={data_cache}")
     assert (cfg.isotropic, cfg.ssim_lambda, cfg.sh_degree) == (True, 0.0, 0)
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
@@ -95,10 +95,10 @@ def test_gs_train_course_strategy_keeps_a_fixed_isotropic_set(compose, tmp_path)
     assert m["history"][-1]["psnr"] > m["history"][0]["psnr"] and m["psnr"] > 17.0
 
 
-def test_gs_train_mcmc_strategy_grows_to_its_cap(compose, tmp_path):
+def test_gs_train_mcmc_strategy_grows_to_its_cap(compose, tmp_path, data_cache):
     torch.set_num_threads(1)
     cfg = compose(*TINY, "strategy=mcmc", "iters=60", "eval_every=30", "strategy.start=5", "strategy.every=10",
-                  "strategy.cap_max=1700", "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
+                  "strategy.cap_max=1700", "tensorboard=false", f"data.cache_dir={data_cache}")
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert m["n_gaussians"] == 1700
@@ -120,27 +120,27 @@ def test_gs_render_turntable_of_a_ply(compose, tmp_path):
 
 
 @pytest.mark.parametrize("min_left,expect_reset", [(0, True), (5, False)])
-def test_gs_train_skips_an_opacity_reset_too_close_to_the_end(compose, tmp_path, min_left, expect_reset):
+def test_gs_train_skips_an_opacity_reset_too_close_to_the_end(compose, tmp_path, min_left, expect_reset, data_cache):
     """iters=26, a reset due at step 24: two steps are left, so a margin of 5 skips it (the
     opacities stay near their 0.1 start) and a margin of 0 makes it (they end near 0.01)."""
     torch.set_num_threads(1)
     cfg = compose("task=gs_train", "iters=26", "eval_every=26", "data.image_size=24", "data.n_train=8",
                   "data.n_test=1", "n_init=600", "strategy.start=1000", "strategy.opacity_reset_every=24",
                   f"strategy.reset_min_steps_left={min_left}", "time_budget=0", "tensorboard=false",
-                  f"data.cache_dir={tmp_path / 'cache'}")
+                  f"data.cache_dir={data_cache}")
     run_task(cfg, out_dir=tmp_path / "run")
     g = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["trainable"]["modules"]["gaussians"]
     mean_opacity = float(torch.sigmoid(g["opacity_logits"]).mean())
     assert (mean_opacity < 0.03) if expect_reset else (mean_opacity > 0.06), mean_opacity
 
 
-def test_gs_train_resume_is_bitwise_identical(compose, tmp_path, monkeypatch):
+def test_gs_train_resume_is_bitwise_identical(compose, tmp_path, monkeypatch, data_cache):
     """N steps in one go == N/2 steps, interrupted, then resumed (density accumulators included)."""
     torch.set_num_threads(1)
     args = ("task=gs_train", "iters=36", "eval_every=18", "data.image_size=24", "data.n_train=8", "data.n_test=1",
             "n_init=600", "strategy.start=6", "strategy.every=6", "strategy.opacity_reset_every=24",
             "strategy.reset_min_steps_left=0", "strategy.densify_min_steps_left=0", "sh_every=12", "tensorboard=false",
-            f"data.cache_dir={tmp_path / 'cache'}")
+            f"data.cache_dir={data_cache}")
     run_task(compose(*args), out_dir=tmp_path / "full")
     monkeypatch.setenv("L3D_STOP_AT_STEP", "15")          # mid-way between two densifications
     with pytest.raises(RunInterrupted):
@@ -182,7 +182,7 @@ def test_colors_from_views_median_of_the_pixels_seen():
     torch.testing.assert_close(c[1:], torch.full((2, 3), 0.5))
 
 
-def test_gs_train_scene_extent_reads_the_training_cameras_only(compose, tmp_path, monkeypatch):
+def test_gs_train_scene_extent_reads_the_training_cameras_only(compose, tmp_path, monkeypatch, data_cache):
     """The extent that scales the means' LR and the densification thresholds comes from the
     training cameras (3DGS); the test cameras' poses take no part in training."""
     from l3d_app.registry import DATASETS
@@ -193,7 +193,7 @@ def test_gs_train_scene_extent_reads_the_training_cameras_only(compose, tmp_path
     monkeypatch.setattr(DefaultStrategy, "initialize",
                         lambda self, model, opt, extent: (seen.setdefault("extent", extent), real(self, model, opt, extent))[1])
     cfg = compose("task=gs_train", "iters=1", "eval_every=1", "data.image_size=24", "data.n_train=8", "data.n_test=3",
-                  "n_init=200", "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
+                  "n_init=200", "tensorboard=false", f"data.cache_dir={data_cache}")
     run_task(cfg, out_dir=tmp_path / "run")
     data = DATASETS.build(cfg.data)
     spread = lambda c: float((c - c.mean(0)).norm(dim=-1).max())    # noqa: E731

@@ -273,8 +273,8 @@ TINY = ["data.image_size=32", "data.n_train=48", "data.n_val=2", "data.n_test=2"
         "tensorboard=false", "threads=1"]
 
 
-def test_train_nerf_short_run_improves_psnr(compose, tmp_path):
-    cfg = compose("task=train_nerf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=240", "eval_every=60",
+def test_train_nerf_short_run_improves_psnr(compose, tmp_path, data_cache):
+    cfg = compose("task=train_nerf", *TINY, f"data.cache_dir={data_cache}", "iters=240", "eval_every=60",
                   "batch_rays=512", "sampler.n_samples=48", "sampler.resolution=32", "sampler.warmup_steps=40",
                   "sampler.update_every=8", "sampler.threshold=2.0", "gif_frames=3", "extract_mesh=true",
                   "mesh_resolution=32", "mesh_threshold=2.0", "mesh_formats=[obj,glb]")
@@ -294,14 +294,14 @@ def test_train_nerf_short_run_improves_psnr(compose, tmp_path):
     assert (tmp_path / "run" / "before_after.png").exists() and m["before_val_psnr"] < hist[0] < m["val_psnr"]
 
 
-def test_nerf_baseline_config_is_the_course_setting(compose, tmp_path):
+def test_nerf_baseline_config_is_the_course_setting(compose, tmp_path, data_cache):
     cfg = compose("task=nerf_baseline")
     assert cfg.task_name == "train_nerf" and cfg.model.name == "nerf_mlp"
     assert (cfg.model.n_layers, cfg.model.hidden, list(cfg.model.skips)) == (6, 128, [3])
     assert (cfg.model.n_freq_xyz, cfg.model.n_freq_dir, cfg.sampler.n_samples, cfg.batch_rays) == (6, 2, 128, 1024)
     assert (cfg.optim.lr, cfg.optim.decay, cfg.optim.decay_every, cfg.sampler.name) == (5e-4, 0.8, 20000, "stratified")
     assert (cfg.optim.name, cfg.optim.eps, cfg.optim.decay_every) == ("adam_step", 1e-8, 20000)
-    cfg = compose("task=nerf_baseline", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "iters=3", "eval_every=3",
+    cfg = compose("task=nerf_baseline", *TINY, f"data.cache_dir={data_cache}", "iters=3", "eval_every=3",
                   "batch_rays=64", "sampler.n_samples=16", "sampler=importance", "sampler.n_fine=8", "gif_frames=0")
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())

@@ -128,6 +128,14 @@ class TimeBudget:
         self.reserve += seconds
         return seconds
 
+    def time_validation(self, fn: Callable[[], object]) -> object:
+        """Run a validation of the task's own before training (``fn``), timed: the loop's first price
+        of a validation (``eval_price``); returns what ``fn`` returns."""
+        t0 = self.clock()
+        out = fn()
+        self.eval_price = self.clock() - t0
+        return out
+
     # ------------------------------------------------------------------ before and after training
     def seconds_left(self) -> Optional[float]:
         """Seconds of the budget not yet spent (negative once overrun); None without a budget."""

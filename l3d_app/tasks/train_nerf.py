@@ -9,12 +9,12 @@ Each step: ``batch_rays`` random pixels of the TRAIN views, colour MSE. Every ``
 steps the shared loop evaluates the VALIDATION views (``eval_views`` of them; PSNR / SSIM and
 a ``pred | truth | error | depth`` picture in TensorBoard); the TEST views are rendered once,
 after training (``psnr``, ``ssim`` in metrics.json; ``val_*`` the last validation).
-``time_budget`` > 0: wall seconds for the whole task; the loop keeps time for the test views
-(priced at its validations), ``mesh_reserve`` seconds with ``extract_mesh=true`` (at ``mesh_resolution``
-128; another resolution adds the grid's extra points at the density's measured cost) and the top-level
-``reserve`` (5 s: the task config); the gif comes last with the
-frames that still fit (:func:`~l3d_app.render.previews.write_turntables`). Outputs: ``turntable.gif`` (colour | depth, orbiting the data's
-up axis), ``test_views.png``, ``metrics.json``; ``extract_mesh=true`` adds ``mesh.<fmt>`` of
+``time_budget`` > 0: wall seconds for the whole task; the task declares what follows training to
+the run's :class:`~l3d_app.runtime.budget.TimeBudget` (the test views in validations, the mesh with
+``extract_mesh=true``, ``reserve`` seconds), which prices it; the gif comes last with the frames that
+still fit (:func:`~l3d_app.render.previews.write_turntables`). Outputs: ``turntable.gif`` (colour |
+depth, orbiting the data's up axis), ``test_views.png``, ``metrics.json``; ``extract_mesh=true`` adds
+``mesh.<fmt>`` of
 ``density = mesh_threshold`` coloured by the field (with ``mesh_cull``: only the faces some
 training camera sees; the whole level set in ``mesh_uncut.ply``).
 """
@@ -97,13 +97,12 @@ def train_nerf(cfg, ctx) -> dict:
 
     val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val
 
+    # what follows training: the test views (the gif takes what is left) and, extracted, the mesh
+    budget = TimeBudget.of(ctx, evals_after=views_in_validations(len(val), len(data.test)))
     before_after = BeforeAfter()
     trainable.extra["before_after"] = before_after      # checkpointed: a resumed run keeps its "before"
-    before_seconds = None        # the loop's first price of a validation under a time budget
     if len(val) and bool(cfg.before_after) and not (bool(cfg.resume) and ctx.path("checkpoint.pt").exists()):
-        t_before = time.perf_counter()
-        before_after.before(ctx, lambda: evaluate(val))
-        before_seconds = time.perf_counter() - t_before
+        budget.time_validation(lambda: before_after.before(ctx, lambda: evaluate(val)))   # the loop's first price
 
     def eval_fn(step: int) -> Dict[str, float]:
         sampler.update(step, model, ctx.generator)
@@ -111,8 +110,6 @@ def train_nerf(cfg, ctx) -> dict:
         before_after.after(picture)
         return {**metrics, **figures(), "images": {"views": picture}}
 
-    # what follows training: the test views (the gif takes what is left) and, extracted, the mesh
-    budget = TimeBudget.of(ctx, evals_after=views_in_validations(len(val), len(data.test)), eval_price=before_seconds)
     mesh_reserve = budget.keep_mesh(int(cfg.mesh_resolution), float(cfg.mesh_reserve), lambda: seconds_per_grid_point(
         model.density, box, device=ctx.device)) if bool(cfg.extract_mesh) else 0.0
     with ctx.stopwatch.stage("train"):
