@@ -85,10 +85,12 @@ def test_a_resumed_train_nerf_run_keeps_its_before_picture_and_figure(compose, t
 
 RESUMED_RATES = {
     "train_nerf": ("task=train_nerf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16",
-                   "data.n_train=4", "data.n_val=1", "data.n_test=1", "time_budget=0", "batch_rays=64"),
+                   "data.n_train=4", "data.n_val=1", "data.n_test=1", "time_budget=0", "batch_rays=64",
+                   "sampler.resolution=16"),
     "volsdf": ("task=volsdf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16", "data.n_train=4",
                "data.n_val=1", "data.n_test=1", "time_budget=0", "batch_rays=64", "free_space.steps=0",
-               "pretrain_steps=5", "mesh_resolution=16", "eval_points=500", "before_after=false"),
+               "pretrain_steps=5", "mesh_resolution=16", "eval_points=500", "before_after=false",
+               "sampler.resolution=16"),
     "fit_point": FIT_POINT,
 }
 
