@@ -55,23 +55,22 @@ def test_interrupted_run_resumes_to_the_uninterrupted_result(compose, tmp_path, 
 
 
 def test_bad_data_folders_exit_2_with_one_line(tmp_path):
-    from test_app import main_py
+    from cli_batch import run_batch
 
     bad_nerf = tmp_path / "nerf"
     bad_nerf.mkdir()
     (bad_nerf / "transforms_train.json").write_text(json.dumps({"frames": []}))  # no camera_angle_x
-    for args in (["task=box", f"data.root={tmp_path / 'nothing'}"],
-                 ["task=train_nerf", "data=blender", f"data.root={bad_nerf}"]):
-        out = main_py(*args, f"hydra.run.dir={tmp_path / 'run'}")
-        assert out.returncode == 2, out.stderr
-        assert len(out.stderr.strip().splitlines()) == 1 and "Traceback" not in out.stderr
+    cases = [["task=box", f"data.root={tmp_path / 'nothing'}"], ["task=train_nerf", "data=blender", f"data.root={bad_nerf}"]]
+    for out in run_batch([[*args, f"hydra.run.dir={tmp_path / 'run'}"] for args in cases], tmp_path / "batch"):
+        assert out["returncode"] == 2, out["stderr"]
+        assert len(out["stderr"].strip().splitlines()) == 1 and "Traceback" not in out["stderr"]
         assert not (tmp_path / "run").exists()       # nothing written: the run directory is removed too
 
 
 def test_a_resumed_train_nerf_run_keeps_its_before_picture_and_figure(compose, tmp_path, monkeypatch, data_cache):
     """before_val_psnr and before_after.png come from the untrained field: a resumed run carries
     them in its checkpoint (it cannot render them again), equal to the uninterrupted run's."""
-    args = ("task=train_nerf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16", "data.n_train=4",
+    args = ("task=train_nerf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16", "data.n_train=4", "batch_rays=64",
             "data.n_val=1", "data.n_test=1", "time_budget=0", "tensorboard=false", f"data.cache_dir={data_cache}")
     run_task(compose(*args), out_dir=tmp_path / "full")
     monkeypatch.setenv("L3D_STOP_AT_STEP", "2")

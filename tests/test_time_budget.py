@@ -67,7 +67,7 @@ def test_the_knob_reaches_a_task_that_never_names_it(compose, tmp_path):
     # its first step (the loop always takes one), where 40 steps were asked for
     from l3d_app.app import run_task
     import json
-    run_task(compose("task=fit_vox", "iters=40", "eval_every=20", "num_frames=2", "image_size=16",
+    run_task(compose("task=fit_vox", "voxel_size=8", "iters=40", "eval_every=20", "num_frames=2", "image_size=16",
                      "time_budget=1e-6"), out_dir=tmp_path)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["iters"] == 1
@@ -79,7 +79,7 @@ def test_the_knob_reaches_a_task_that_never_names_it(compose, tmp_path):
 def test_a_run_within_its_budget_reports_no_overrun(compose, tmp_path):
     from l3d_app.app import run_task
     import json
-    run_task(compose("task=fit_vox", "iters=4", "eval_every=2", "num_frames=2", "image_size=16",
+    run_task(compose("task=fit_vox", "voxel_size=8", "iters=4", "eval_every=2", "num_frames=2", "image_size=16",
                      "time_budget=3600", "tensorboard=false"), out_dir=tmp_path)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["iters"] == 4 and "over_budget_seconds" not in metrics and (tmp_path / "fit_vox.gif").is_file()
