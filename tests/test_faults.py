@@ -116,7 +116,7 @@ def test_a_resumed_runs_timings_cover_the_whole_run(compose, tmp_path, monkeypat
 def test_resuming_a_finished_neus_anneal_run_gives_back_its_figures(compose, tmp_path, data_cache):
     """resume=true on a finished volsdf run with an annealed NeuS density runs no step and evaluates the
     loaded field again: with the checkpoint's last s (not the configured start) its figures are the run's
-    own (before the fix it evaluated with s = 3.0 and reported other figures)."""
+    own (not those of the configured starting s = 3.0)."""
     args = (*RESUMED_RATES["volsdf"], "density=neus", "s=3.0", "s_mode=anneal", "s_end=100", "ncc.weight=0",
             "tensorboard=false", f"data.cache_dir={data_cache}")
     run_task(compose(*args), out_dir=tmp_path)

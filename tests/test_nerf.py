@@ -283,7 +283,7 @@ def test_train_nerf_short_run_improves_psnr(compose, tmp_path, data_cache):
     for key in ("psnr", "ssim", "val_psnr", "val_ssim", "seconds", "iters", "n_params", "occupied_fraction",
                 "samples_per_ray", "rays_per_second"):
         assert key in m
-    hist = [h["psnr"] for h in m["history"]]            # validation views only (issue 15)
+    hist = [h["psnr"] for h in m["history"]]            # validation views only
     assert m["history"][-1]["psnr"] == pytest.approx(m["val_psnr"], abs=1e-3)
     assert m["iters"] == 240 and len(hist) == 4
     assert hist[-1] > hist[0] + 1.5 and m["psnr"] > 19.0, hist
