@@ -123,12 +123,12 @@ TINY = ["data.image_size=32", "data.n_train=48", "data.n_val=2", "data.n_test=2"
         "tensorboard=false", "threads=1"]
 
 
-def test_experiment_nerf_baseline_is_hierarchical_and_a_short_run_learns(compose, tmp_path):
+def test_experiment_nerf_baseline_is_hierarchical_and_a_short_run_learns(compose, tmp_path, data_cache):
     cfg = compose("experiment=nerf_baseline")
     assert (cfg.sampler.name, cfg.sampler.n_samples, cfg.sampler.n_fine, cfg.model.name) == \
         ("hierarchical", 64, 128, "nerf_mlp")
-    cfg = compose("task=train_nerf", "sampler=hierarchical", *TINY, f"data.cache_dir={tmp_path / 'cache'}",
-                  "iters=120", "eval_every=60", "batch_rays=256", "n_samples=16", "sampler.n_fine=16", "gif_frames=0",
+    cfg = compose("task=train_nerf", "sampler=hierarchical", *TINY, f"data.cache_dir={data_cache}",
+                  "iters=120", "eval_every=60", "batch_rays=256", "sampler.n_samples=16", "sampler.n_fine=16", "gif_frames=0",
                   "before_after=false", "time_budget=0")
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())

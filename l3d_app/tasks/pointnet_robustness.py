@@ -33,16 +33,16 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
+from l3d_app.pipelines.point_nets import evaluate, fit, load_model, require_axis, rotations
+from l3d_app.pipelines.point_visuals import rotation_row
 from l3d_app.registry import RENDERERS, TASKS
-from l3d_app.render.palette import palette
-from l3d_app.render.points.cloud_row import cloud_row, correctness_colors
 from l3d_app.runtime.config_values import config_floats, config_words
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.plots import line_plot
 from l3d_app.runtime.seed import seed_everything
-from l3d_app.tasks.point_common import evaluate, fit, load_data, load_model, require_axis, rotations
+from l3d_app.tasks.point_common import load_data, training_spec
 
 
 def _table(title: str, header: str, rows: Dict[Any, float]) -> str:
@@ -60,8 +60,7 @@ def _model_for(cfg, ctx, kind: str):
             raise UserError(f"{kind}_checkpoint {path} holds a '{meta['kind']}' model")
         selected_on = str(meta.get("selected_on", "unknown"))
         if selected_on != "val":
-            note = (f"{kind}_checkpoint {path} does not say it was chosen on the validation split "
-                    "(a best.pt written before 2026-11-27 does not say; older ones were chosen on test)")
+            note = f"{kind}_checkpoint {path} does not say it was chosen on the validation split"
             print(f"l3d_app: note: {note}", file=sys.stderr)
             ctx.logger.text(f"{kind}/selected_on", note)
         return model, data, {"source": str(path), "selected_on": selected_on}
@@ -71,7 +70,7 @@ def _model_for(cfg, ctx, kind: str):
                          logger=RunLogger(sub, enabled=ctx.logger.writer is not None))
     sub.mkdir(parents=True, exist_ok=True)
     try:
-        model, info = fit(cfg, sub_ctx, data, kind)
+        model, info = fit(training_spec(cfg), sub_ctx, data, kind)
     finally:
         sub_ctx.logger.close()
     return model, data, {"source": str(sub / "best.pt"), "train_seconds": info["train_seconds"],
@@ -79,19 +78,11 @@ def _model_for(cfg, ctx, kind: str):
 
 
 def _rotation_row(cfg, ctx, ev, kind: str, data, degrees: float) -> torch.Tensor:
-    """One picture row: the first test cloud of each class (up to ``rotation_pictures``) as rotated by
-    ``degrees``, coloured by the model's answer; logged to TensorBoard at that angle."""
-    labels, n = data.test.labels, int(cfg.rotation_pictures)
-    firsts = (list(range(min(n, len(data.test)))) if labels is None else      # seg-only data: the first clouds
-              [int((labels == c).nonzero()[0]) for c in torch.unique(labels).tolist()][:n])
-    index = torch.tensor(firsts)
-    if kind == "cls":
-        colors = correctness_colors(ev.pred[index] == ev.target[index], ev.points.shape[1])
-    else:
-        colors = palette(len(data.part_names))[ev.pred[index]]
+    """The picture row of one angle (:func:`rotation_row`), logged to TensorBoard at that angle."""
     camera = look_at_cameras(float(cfg.distance), float(cfg.elevation), 30.0, float(cfg.fov), int(cfg.image_size),
                              device=ctx.device)
-    row = cloud_row(RENDERERS.build(cfg.point_renderer), camera, list(ev.points[index]), list(colors))
+    row = rotation_row(RENDERERS.build(cfg.point_renderer), camera, ev, kind, data.test.labels,
+                       int(cfg.rotation_pictures), len(data.part_names))
     ctx.logger.image(f"rotation/{kind}", row, int(round(degrees)))
     return row
 
