@@ -33,7 +33,7 @@ BUDGETS = (30, 60, 120, 300)
 CONFIGS = {"train_nerf": ["task=train_nerf"],
            "nerf_baseline": ["experiment=nerf_baseline"],
            "nerf_importance": ["experiment=nerf_baseline", "sampler=importance", "sampler.n_fine=128"],
-           "nerf_stratified": ["experiment=nerf_baseline", "sampler=stratified", "n_samples=128"]}
+           "nerf_stratified": ["experiment=nerf_baseline", "sampler=stratified", "sampler.n_samples=128"]}
 EVAL_EVERY = {"train_nerf": 10, "nerf_baseline": 25, "nerf_importance": 25, "nerf_stratified": 25}   # steps between val readings
 
 
