@@ -45,6 +45,15 @@ def test_report_has_loss_curves_their_end_and_each_jobs_picture(tmp_path):
     assert "![loss](report_loss.png)" in md and "![views](report_views.png)" in md and "beta=0.5" in md
 
 
+def test_pictures_are_labelled_by_what_differs_between_jobs():
+    from l3d_app.runtime.sweep_pictures import varying_labels
+
+    jobs = ["experiment=course_volsdf density.beta=0.01 iters=5", "experiment=course_volsdf density.beta=0.5 iters=5"]
+    assert varying_labels(jobs) == ["density.beta=0.01", "density.beta=0.5"]
+    assert varying_labels(["a=1 b=2"]) == ["a=1 b=2"]                     # one job: its whole line
+    assert varying_labels(["a=1", "a=1 b=2"]) == ["a=1", "b=2"]             # nothing of its own: the whole line
+
+
 def test_the_sweep_callback_writes_the_report_and_notes_what_it_cannot(tmp_path, capsys):
     from l3d_app.app import SweepReport
 

@@ -3,9 +3,10 @@
 The report of a sweep directory (:mod:`l3d_app.report`) adds, where its jobs have them:
 
 - ``report_loss.png``: the ``train/loss`` scalar of every job's TensorBoard events against step, one line
-  per job labelled by its overrides (e.g. the course's loss curves per ``beta``), and each job's
+  per job labelled by the overrides in which it differs from the others (:func:`varying_labels`; e.g. the
+  course's loss curves per ``density.beta``), and each job's
   ``train_loss_end`` (the mean of the last tenth of its logged values) for the table;
-- ``report_views.png``: each job's picture, one row per job titled by its overrides: the first file of
+- ``report_views.png``: each job's picture, one row per job titled by the same label: the first file of
   :data:`PICTURES` the job wrote (``test_views.png``: prediction | truth | error | depth of the test views).
 """
 
@@ -20,6 +21,14 @@ from l3d_app.runtime.files import atomic_path
 
 PICTURES = ("test_views.png", "before_after.png", "views.png", "stereo.png", "normals.png")
 LOSS_TAG = "train/loss"
+
+
+def varying_labels(overrides: Sequence[str]) -> List[str]:
+    """Each job's overrides (space-separated ``key=value`` words) less the words every job shares, in their
+    order; a job left with none (or a single job) keeps its whole line."""
+    words = [o.split() for o in overrides]
+    shared = set.intersection(*map(set, words)) if len(words) > 1 else set()
+    return [" ".join(w for w in ws if w not in shared) or " ".join(ws) for ws in words]
 
 
 def loss_curve(run_dir: Path) -> Optional[Dict[str, List[float]]]:
@@ -106,9 +115,9 @@ def sweep_pictures(root: Path, jobs: Sequence, out: Path) -> Dict[str, object]:
     ``root`` into ``out`` where any job has a loss curve / a picture; returns ``{"loss_end": {job path: loss},
     "files": {kind: path}}``."""
     curves, pictures, ends = {}, {}, {}
-    for job in jobs:
+    for job, label in zip(jobs, varying_labels([job.overrides for job in jobs])):
         run_dir = Path(root) / job.path
-        label = job.overrides or job.path
+        label = label or job.path
         curve = loss_curve(run_dir)
         if curve is not None and curve["loss"]:
             curves[label] = curve
