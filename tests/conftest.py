@@ -34,16 +34,52 @@ def course_data(*parts: str) -> Path:
     return path
 
 
-@pytest.fixture
-def compose():
-    """Compose the app's Hydra config with overrides (no run directory, no chdir)."""
+def compose_config(*overrides: str):
+    """The app's Hydra config composed with ``overrides`` (no run directory, no chdir), their shorthands
+    expanded as on the command line (l3d_app/aliases.py)."""
     from hydra import compose as hydra_compose, initialize_config_dir
 
-    def _compose(*overrides: str):
-        with initialize_config_dir(version_base="1.3", config_dir=str(REPO / "conf")):
-            return hydra_compose(config_name="config", overrides=list(overrides))
+    from l3d_app.aliases import expand_aliases
 
-    return _compose
+    with initialize_config_dir(version_base="1.3", config_dir=str(REPO / "conf")):
+        return hydra_compose(config_name="config", overrides=expand_aliases(list(overrides)))
+
+
+@pytest.fixture
+def compose():
+    """:func:`compose_config` as a fixture."""
+    return compose_config
+
+
+VOLSDF_TINY = ("data.image_size=32", "data.n_train=48", "data.n_val=2", "data.n_test=2", "data.antialias=1",
+               "threads=1", "time_budget=0")
+"""volsdf on the built-in scene at 32 px (48 training views): the end-to-end tests' size."""
+
+
+@pytest.fixture(scope="session")
+def volsdf_data_dir(tmp_path_factory) -> Path:
+    """One cache of the built-in scene's renders for every volsdf test of the session."""
+    return tmp_path_factory.mktemp("volsdf_data")
+
+
+@pytest.fixture(scope="session")
+def volsdf_run(tmp_path_factory, volsdf_data_dir):
+    """One short volsdf run shared by the end-to-end tests (tests/test_volsdf.py): the defaults' parts (density=auto,
+    the sphere init, coarse-to-fine levels, colour, eikonal and patch terms) without the free-space stage (its
+    own tests: tests/test_volsdf_free_space.py), 120 steps of 256 rays from beta 0.1 (the shipped 0.3 has barely
+    begun its anneal by then), every output on. Its run directory, config and metrics."""
+    import json
+    from types import SimpleNamespace
+
+    from l3d_app.app import run_task
+
+    cfg = compose_config("task=volsdf", *VOLSDF_TINY, f"data.cache_dir={volsdf_data_dir}", "iters=120",
+                         "eval_every=40", "batch_rays=256", "optim.lr=0.005", "beta=0.1", "stages.sphere_init.steps=50",
+                         "stages.free_space.steps=0", "gif_frames=2", "mesh_resolution=32", "eval_points=2000",
+                         "mesh_formats=[obj,glb]")
+    out = tmp_path_factory.mktemp("volsdf_run")
+    run_task(cfg, out_dir=out)
+    return SimpleNamespace(dir=out, cfg=cfg, metrics=json.loads((out / "metrics.json").read_text()))
 
 
 @pytest.hookimpl(tryfirst=True)

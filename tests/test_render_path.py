@@ -154,11 +154,14 @@ def test_render_path_on_a_gs_train_run_matches_the_model(compose, tmp_path):
 
 @pytest.mark.parametrize("task, extra", [
     ("train_nerf", ["iters=40", "eval_every=40", "gif_frames=2"]),
-    ("volsdf", ["iters=30", "eval_every=30", "supersample=1", "pretrain_steps=50", "gif_frames=0", "free_space.steps=0"]),
-    ("volsdf", ["iters=30", "eval_every=30", "supersample=1", "pretrain_steps=50", "gif_frames=0", "free_space.steps=0",
-                "density=neus", "s=3.0", "s_mode=anneal", "s_end=100"]),    # the loaded s is the run's last, not s_start
-    ("volsdf", ["iters=30", "eval_every=30", "supersample=1", "pretrain_steps=50", "gif_frames=0", "free_space.steps=0",
-                "beta=0.33", "beta_end=0.01", "data.elevation_range=[-60,60]"]),   # density=auto picks NeuS here
+    ("volsdf", ["iters=30", "eval_every=30", "supersample=1", "stages.sphere_init.steps=50", "gif_frames=0",
+                "stages.free_space.steps=0"]),
+    ("volsdf", ["iters=30", "eval_every=30", "supersample=1", "stages.sphere_init.steps=50", "gif_frames=0",
+                "stages.free_space.steps=0", "density=neus", "s=3.0", "density.mode=anneal",
+                "density.s_end=100"]),                       # the loaded s is the run's last, not s_start
+    ("volsdf", ["iters=30", "eval_every=30", "supersample=1", "stages.sphere_init.steps=50", "gif_frames=0",
+                "stages.free_space.steps=0", "beta=0.33", "density.beta_end=0.01",
+                "data.elevation_range=[-60,60]"]),          # density=auto picks NeuS here
 ])
 def test_render_path_of_a_field_run_reproduces_its_test_psnr(compose, tmp_path, task, extra):
     """render_path of a train_nerf / volsdf run, along a camera_path.json holding the run's test camera,
