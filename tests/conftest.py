@@ -65,15 +65,15 @@ def volsdf_data_dir(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def volsdf_run(tmp_path_factory, volsdf_data_dir):
     """One short volsdf run shared by the end-to-end tests (tests/test_volsdf.py): the defaults' parts (density=auto,
-    the sphere init, coarse-to-fine levels, colour, eikonal and patch terms) without the free-space stage (its
-    own tests: tests/test_volsdf_free_space.py), 120 steps of 256 rays from beta 0.1 (the shipped 0.3 has barely
-    begun its anneal by then), every output on. Its run directory, config and metrics."""
+    the sphere init, coarse-to-fine levels, colour, eikonal and patch terms) without the free-space stage
+    (:func:`free_space_run`), 80 steps of 256 rays from beta 0.1 (the shipped 0.3 has barely begun its anneal
+    by then), every output on. Its run directory, config and metrics."""
     import json
     from types import SimpleNamespace
 
     from l3d_app.app import run_task
 
-    cfg = compose_config("task=volsdf", *VOLSDF_TINY, f"data.cache_dir={volsdf_data_dir}", "iters=120",
+    cfg = compose_config("task=volsdf", *VOLSDF_TINY, f"data.cache_dir={volsdf_data_dir}", "iters=80",
                          "eval_every=40", "batch_rays=256", "optim.lr=0.005", "beta=0.1", "stages.sphere_init.steps=50",
                          "stages.free_space.steps=0", "gif_frames=2", "mesh_resolution=32", "eval_points=2000",
                          "mesh_formats=[obj,glb]")
@@ -82,16 +82,40 @@ def volsdf_run(tmp_path_factory, volsdf_data_dir):
     return SimpleNamespace(dir=out, cfg=cfg, metrics=json.loads((out / "metrics.json").read_text()))
 
 
-@pytest.hookimpl(tryfirst=True)
-def pytest_runtest_setup(item):
-    """Seed torch's global generator from the test's node id (order-independent), before any
-    fixture of the test is set up (module-scoped ones included)."""
-    torch.manual_seed(zlib.crc32(item.nodeid.encode()))
+@pytest.fixture(scope="session")
+def free_space_run(tmp_path_factory):
+    """One volsdf run with the free-space stage (tests/test_volsdf_free_space.py): the built-in scene at 64 px
+    (48 training views), the stage's 300 steps of 1024 rays, then 30 steps of 256 rays whose only free-space
+    term is the ray term (weight 1, its ends as the stage left them) and no patch term. What each step handed
+    the ray term is recorded: the batch's ray indices, their ends and the batch's mean opacity before them."""
+    import json
+    from types import SimpleNamespace
 
+    import l3d_app.losses.free_space as free_space_losses
+    from l3d_app.app import run_task
+    from l3d_app.losses.terms import LossTerms
 
-def pytest_terminal_summary(terminalreporter, config):
-    """Print the random-order seed even under -q (pytest-randomly prints it only in the header)."""
-    if config.pluginmanager.hasplugin("randomly"):
-        seed = config.getoption("randomly_seed", None)
-        terminalreporter.write_line(f"random order: --randomly-seed={seed} (pytest-randomly; "
-                                    f"-p no:randomly for file order)")
+    cfg = compose_config("task=volsdf", *VOLSDF_TINY, "data.image_size=64",
+                         f"data.cache_dir={tmp_path_factory.mktemp('free_space_data')}", "tensorboard=false",
+                         "iters=30", "eval_every=30", "batch_rays=256", "stages.sphere_init.steps=20",
+                         "stages.free_space.steps=300", "stages.free_space.batch_rays=1024", "losses.free_points.weight=0",
+                         "losses.free_rays.weight=1",
+                         "losses.free_rays.margin_beta=0", "losses.ncc.weight=0", "gif_frames=0", "mesh_resolution=16",
+                         "eval_points=500")
+    drawn, calls = [], []
+    real_call, real_opacity = LossTerms.__call__, free_space_losses.opacity_before
+
+    def record_batch(self, batch, iters):
+        drawn.append(batch.rays.clone())
+        return real_call(self, batch, iters)
+
+    def record_opacity(weights, t, ray_indices, ends, n_rays):
+        out = real_opacity(weights, t, ray_indices, ends, n_rays)
+        calls.append((drawn[-1], ends.detach().clone(), float(out.detach().mean())))
+        return out
+    out = tmp_path_factory.mktemp("free_space_run")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(LossTerms, "__call__", record_batch)
+        patch.setattr(free_space_losses, "opacity_before", record_opacity)
+        run_task(cfg, out_dir=out)
+    return SimpleNamespace(dir=out, cfg=cfg, metrics=json.loads((out / "metrics.json").read_text()), calls=calls)

@@ -112,10 +112,10 @@ def test_volsdf_short_run_improves_psnr_and_writes_everything(volsdf_run):
         assert key in m, key
     hist = [h["psnr"] for h in m["history"]]          # validation views only
     assert m["history"][-1]["psnr"] == pytest.approx(m["val_psnr"], abs=1e-3)
-    # against the untrained field (12.4 dB here): +3.7 dB; a margin over the first validation (step 40) instead
+    # against the untrained field (12.4 dB here): +3.0 dB; a margin over the first validation (step 40) instead
     # depends on how much the first 40 steps already gained
     before = m["before_val_psnr"]
-    assert len(hist) == 3 and hist[-1] > hist[0] and hist[-1] > before + 2.0 and hist[-1] > 14.5, (before, hist)
+    assert len(hist) == 2 and hist[-1] > hist[0] and hist[-1] > before + 2.0 and hist[-1] > 14.5, (before, hist)
     assert np.isfinite(m["chamfer"]) and 0 <= m["f1"] <= 1
     # density=auto: 16 of the 100 built-in training cameras lie below the scene's centre: under a quarter, VolSDF
     assert m["density"] == "volsdf" and m["cameras_below_fraction"] == pytest.approx(0.16, abs=0.02)
@@ -145,22 +145,22 @@ def test_the_patch_loss_acts_until_its_fraction_of_the_steps(volsdf_run):
     events.Reload()
     rays = {e.step: e.value for e in events.Scalars("train/ncc_rays")}
     ncc = {e.step: e.value for e in events.Scalars("train/ncc")}
-    assert sorted(rays) == [0, 10, 20, 30, 40, 50] and min(rays.values()) > 0.02   # logged every 10 steps while it acts
+    assert sorted(rays) == [0, 10, 20, 30] and min(rays.values()) > 0.02   # logged every 10 steps while it acts
     assert all(-1.0 <= v <= 1.0 for v in ncc.values())
-    assert {0, 110} <= {e.step for e in events.Scalars("train/color_loss")}        # the run went on without it
+    assert {0, 70} <= {e.step for e in events.Scalars("train/color_loss")}        # the run went on without it
     assert {e.step for e in events.Scalars("train/ncc_loss")} == set(rays)
 
 
-def test_volsdf_neus_variant_learns(compose, tmp_path):
+def test_volsdf_neus_variant_learns(compose, tmp_path, volsdf_data_dir):
     """The NeuS variant must LEARN, as VolSDF does (a shorter run of the same kind as volsdf_run)."""
     assert compose("task=volsdf", "density=neus", "s=1000").density.s == 1000.0
-    cfg = compose("task=volsdf", *TINY, f"data.cache_dir={tmp_path / 'cache'}", "density=neus", "iters=120",
+    cfg = compose("task=volsdf", *TINY, f"data.cache_dir={volsdf_data_dir}", "density=neus", "iters=80",
                   "eval_every=40", "batch_rays=256", "optim.lr=0.005", "stages.sphere_init.steps=50", "gif_frames=0",
                   "mesh_resolution=24", "eval_points=500")
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     hist = [h["psnr"] for h in m["history"]]
-    assert m["density"] == "neus" and np.isfinite(m["psnr"]) and len(hist) == 3
+    assert m["density"] == "neus" and np.isfinite(m["psnr"]) and len(hist) == 2
     assert m["warmup_steps"] == 150                   # optim.warmup_steps=auto with NeuS (a ramp longer than this run)
     assert hist[-1] > hist[0] + 0.25, hist
     from hydra.errors import MissingConfigException
@@ -209,7 +209,7 @@ def test_tensorboard_shows_where_the_time_budget_has_moved_the_schedules(compose
     cfg = compose("task=volsdf", *[o for o in TINY if not o.startswith(("tensorboard", "data.n_train"))],
                   "tensorboard=true", "data.n_train=8", "data.image_size=16", f"data.cache_dir={tmp_path / 'cache'}",
                   "iters=40", "eval_every=40", "batch_rays=64", "stages.sphere_init.steps=5", "gif_frames=0",
-                  "time_budget=100000")
+                  "mesh_resolution=16", "eval_points=200", "time_budget=100000")
     with pytest.raises(RunInterrupted):
         run_task(cfg, out_dir=tmp_path / "run")
     events = EventAccumulator(str(next((tmp_path / "run").glob("events.out.tfevents.*"))), size_guidance={"scalars": 0})

@@ -14,7 +14,7 @@ from l3d_app.app import run_task
 from l3d_app.errors import UserError
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.geometry.training_rays import TrainingRays
-from l3d_app.registry import DATASETS, STAGES
+from l3d_app.registry import DATASETS
 from l3d_app.render.mesh.rgbd import true_depth_maps
 from l3d_app.render.volume.free_space import FreeRays
 from l3d_app.runtime.context import RunContext
@@ -37,37 +37,30 @@ def _scene(cache, n_train: int = 48, masks: bool = False):
 
 
 def _fit(stage: FreeSpaceStage, state: MethodState, out) -> FreeRays:
+    """``stage`` run alone (no budget) on ``state``, writing into ``out``; its free rays."""
     ctx = RunContext(out_dir=out, device=torch.device("cpu"), generator=torch.Generator().manual_seed(0),
                      logger=RunLogger(out, enabled=False))
     assert stage.before_training(state, ctx, StageBudget())
     return state.products["free_rays"]
 
 
-@pytest.fixture(scope="module")
-def fitted(tmp_path_factory, volsdf_data_dir):
-    """The stage alone (no SDF training), 200 steps of 1024 rays, on the built-in scene's 48 training views."""
-    data, state = _scene(volsdf_data_dir)
-    out = tmp_path_factory.mktemp("free_space")
-    stage = FreeSpaceStage(steps=200, batch_rays=1024)
-    return SimpleNamespace(data=data, state=state, free=_fit(stage, state, out), out=out, stage=stage)
-
-
-def test_free_stretches_end_at_the_true_surface(fitted):
-    """Measured when written: 5.4% of the covered pixels' stretches end more than 0.02 inside the true solid
-    (a bright object over the white background, which the radiance field leaves partly transparent), the median
-    stretch ends 0.044 in front of the surface (0.05 of it the margin), 99.2% of the empty pixels are free
-    through the box."""
+def test_free_stretches_end_at_the_true_surface(free_space_run):
+    """The stage of free_space_run (64 px, 48 views, 300 steps). Measured when written: 5.8% of the covered
+    pixels' stretches end more than 0.02 inside the true solid (a bright object over the white background, which
+    the radiance field leaves partly transparent), the median stretch ends 0.043 in front of the surface (0.05 of
+    it the margin), 99.3% of the empty pixels are free through the box."""
     from l3d_app.geometry.point_mesh_distance import point_mesh_distance
 
-    data, stage = fitted.data, fitted.stage
-    saved = torch.load(fitted.out / FILE)                            # every training pixel (under max_rays)
+    cfg, m = free_space_run.cfg, free_space_run.metrics
+    saved = torch.load(free_space_run.dir / FILE)                    # every training pixel (under max_rays)
     dist = saved["distance"]                                         # (R,) along unit rays
     assert torch.equal(saved["index"], torch.arange(dist.shape[0]))
+    data = DATASETS.build(cfg.data)
     cams = data.cameras[data.train]
     truth = true_depth_maps(data.mesh, cams, scale=1).reshape(-1)  # camera-Z depth, +inf where no surface
     o, d = camera_rays(cams, normalize=False)                      # camera Z = 1: |d| converts t to Z
     norm = d.reshape(-1, 3).norm(dim=-1)
-    end_t = dist - stage.margin
+    end_t = dist - float(cfg.stages.free_space.margin)
     hit = torch.isfinite(truth)
     past = hit & (end_t / norm > truth) & torch.isfinite(end_t)     # the stretch ends behind the first surface ...
     ends = o.reshape(-1, 3)[past] + end_t[past, None] * d.reshape(-1, 3)[past] / norm[past, None]
@@ -78,7 +71,29 @@ def test_free_stretches_end_at_the_true_surface(fitted):
     assert inside < 0.08           # free stretches that cut into the true solid
     assert 0.0 < short < 0.12      # where the surface is, the stretch reaches close to it (margin 0.05)
     assert empty > 0.95            # rays that meet no surface are free through the box
-    assert len(fitted.free) > 0 and stage.metrics()["free_space_rays"] == len(fitted.free)
+    assert m["free_space_skipped"] is False and m["free_space_rays"] > 0.5 * dist.shape[0]
+
+
+def test_the_ray_term_reads_each_batch_rays_own_stretch_end(free_space_run):
+    """losses.free_rays alone (the point term off; margin_beta 0: the ends as the stage left them): every
+    training step handed opacity_before the stretch ends of exactly the rays it drew, rebuilt here from the
+    saved free_space.pt and the training rays (-inf where no stretch is known), and its term lowered the
+    render's opacity before those ends (the run logged it falling)."""
+    cfg, calls = free_space_run.cfg, free_space_run.calls
+    assert len(calls) == 30
+    data = DATASETS.build(cfg.data)
+    o, d = camera_rays(data.cameras[data.train], normalize=False)
+    o, d = o.reshape(-1, 3), torch.nn.functional.normalize(d.reshape(-1, 3), dim=-1)
+    saved = torch.load(free_space_run.dir / FILE)
+    keep = saved["index"]
+    free = FreeRays.from_distances(o[keep], d[keep], saved["distance"], data.scene_box.tolist(),
+                                   float(cfg.stages.free_space.margin), keep)
+    want = free.ends_per_ray(o.shape[0], None)
+    for idx, ends, _ in calls:
+        torch.testing.assert_close(ends, want[idx])
+    assert torch.isfinite(want).float().mean() > 0.5          # most training rays carry a claim
+    first, last = sum(c[2] for c in calls[:5]) / 5, sum(c[2] for c in calls[-5:]) / 5
+    assert last < 0.5 * first
 
 
 def test_resume_reads_the_saved_stretches_instead_of_fitting_again(tmp_path):
@@ -108,7 +123,7 @@ def test_the_front_prior_pulls_the_covered_rays_stretch_ends_forward(tmp_path, v
         return real(depth, opacity, near, far)
 
     monkeypatch.setattr(module, "termination_distance", spy)
-    data, state = _scene(volsdf_data_dir, n_train=16, masks=True)
+    data, state = _scene(volsdf_data_dir, masks=True)
     ends = {}
     for w in (0.0, 2.0):
         state.products.clear()
@@ -187,7 +202,7 @@ def test_bad_free_space_knobs_fail_before_the_data_is_read(compose, override, me
         TASKS.get("volsdf")(compose("task=volsdf", override, "data=blender", "data.root=/no/such/folder"), None)
 
 
-def test_a_budget_the_evaluation_needs_skips_the_stage(compose, tmp_path, volsdf_data_dir):
+def test_a_budget_the_evaluation_needs_skips_the_stage(compose, tmp_path):
     """The timed "before" validation predicts the final work; with 100 s of budget and 45 s of reserve
     the stage's half of what is left is under 90 s, so it is skipped (no file, logged in the metrics)."""
     cfg = compose("task=volsdf", *VOLSDF_TINY, "data.n_train=8", "data.image_size=16", "tensorboard=false",
@@ -198,50 +213,3 @@ def test_a_budget_the_evaluation_needs_skips_the_stage(compose, tmp_path, volsdf
     tight = json.loads((tmp_path / "tight" / "metrics.json").read_text())
     assert tight["free_space_skipped"] is True and tight["free_space_rays"] == 0
     assert not (tmp_path / "tight" / FILE).exists()
-
-
-def test_the_ray_term_reads_each_batch_rays_own_stretch_end(compose, tmp_path, volsdf_data_dir, monkeypatch):
-    """losses.free_rays alone (the point term off; margin_beta 0: the ends as the stage left them): every
-    training step hands opacity_before the stretch ends of exactly the rays it drew, rebuilt here from the
-    saved free_space.pt and the training rays (-inf where no stretch is known), and its term lowers the
-    render's opacity before those ends (the run logs it falling)."""
-    import l3d_app.losses.free_space as losses_module
-    from l3d_app.losses.terms import LossTerms
-
-    drawn, calls = [], []
-    real_call, real_opacity = LossTerms.__call__, losses_module.opacity_before
-
-    def record_batch(self, batch, iters):
-        drawn.append(batch.rays.clone())
-        return real_call(self, batch, iters)
-
-    def record_opacity(weights, t, ray_indices, ends, n_rays):
-        out = real_opacity(weights, t, ray_indices, ends, n_rays)
-        calls.append((drawn[-1], ends.detach().clone(), float(out.detach().mean())))
-        return out
-    monkeypatch.setattr(LossTerms, "__call__", record_batch)
-    monkeypatch.setattr(losses_module, "opacity_before", record_opacity)
-    cfg = compose("task=volsdf", *VOLSDF_TINY, "tensorboard=false", f"data.cache_dir={volsdf_data_dir}", "iters=30",
-                  "eval_every=30", "stages.sphere_init.steps=20", "stages.free_space.steps=60",
-                  "stages.free_space.batch_rays=1024", "losses.free_points.weight=0", "losses.free_rays.weight=1",
-                  "losses.free_rays.margin_beta=0", "losses.ncc.weight=0", "gif_frames=0", "mesh_resolution=16",
-                  "eval_points=500", "batch_rays=256")
-    run_task(cfg, out_dir=tmp_path / "run")
-    assert len(calls) == 30
-    data = DATASETS.build(cfg.data)
-    o, d = camera_rays(data.cameras[data.train], normalize=False)
-    o, d = o.reshape(-1, 3), torch.nn.functional.normalize(d.reshape(-1, 3), dim=-1)
-    saved = torch.load(tmp_path / "run" / FILE)
-    keep = saved["index"]
-    free = FreeRays.from_distances(o[keep], d[keep], saved["distance"], data.scene_box.tolist(),
-                                   float(cfg.stages.free_space.margin), keep)
-    want = free.ends_per_ray(o.shape[0], None)
-    for idx, ends, _ in calls:
-        torch.testing.assert_close(ends, want[idx])
-    assert torch.isfinite(want).float().mean() > 0.5          # most training rays carry a claim
-    first, last = sum(c[2] for c in calls[:5]) / 5, sum(c[2] for c in calls[-5:]) / 5
-    assert last < 0.5 * first
-
-
-def test_the_stages_and_terms_registries_hold_the_shipped_parts():
-    assert {"sphere_init", "coarse_to_fine", "free_space"} <= set(STAGES.names())
