@@ -24,13 +24,6 @@ def require_positive(cfg, *keys: str) -> None:
             raise UserError(f"{key} must be a positive number, got {value!r}")
 
 
-def require_fade_end(value, key: str) -> None:
-    """UserError unless ``value`` is None or a fraction of the steps in (0, 1]: where a weight that
-    :func:`~l3d_app.losses.free_space.fade_to_zero` fades reaches 0 (``key`` names it in the message)."""
-    if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1):
-        raise UserError(f"{key} must be null or lie in (0, 1] (a fraction of the steps), got {value!r}")
-
-
 def require_fraction(cfg, *keys: str) -> None:
     """UserError naming the first of ``keys`` whose config value is not a number in [0, 1]
     (a probability, a decay)."""
