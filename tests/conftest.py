@@ -85,7 +85,7 @@ def volsdf_run(tmp_path_factory, volsdf_data_dir):
 @pytest.fixture(scope="session")
 def free_space_run(tmp_path_factory):
     """One volsdf run with the free-space stage (tests/test_volsdf_free_space.py): the built-in scene at 64 px
-    (48 training views), the stage's 300 steps of 1024 rays, then 30 steps of 256 rays whose only free-space
+    (48 training views), the stage's 300 steps of 1024 rays (50000 of the 196608 training rays read off), then 30 steps of 256 rays whose only free-space
     term is the ray term (weight 1, its ends as the stage left them) and no patch term. What each step handed
     the ray term is recorded: the batch's ray indices, their ends and the batch's mean opacity before them."""
     import json
@@ -98,7 +98,8 @@ def free_space_run(tmp_path_factory):
     cfg = compose_config("task=volsdf", *VOLSDF_TINY, "data.image_size=64",
                          f"data.cache_dir={tmp_path_factory.mktemp('free_space_data')}", "tensorboard=false",
                          "iters=30", "eval_every=30", "batch_rays=256", "stages.sphere_init.steps=20",
-                         "stages.free_space.steps=300", "stages.free_space.batch_rays=1024", "losses.free_points.weight=0",
+                         "stages.free_space.steps=300", "stages.free_space.batch_rays=1024",
+                         "+stages.free_space.max_rays=50000", "losses.free_points.weight=0",
                          "losses.free_rays.weight=1",
                          "losses.free_rays.margin_beta=0", "losses.ncc.weight=0", "gif_frames=0", "mesh_resolution=16",
                          "eval_points=500")

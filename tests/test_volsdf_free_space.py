@@ -24,6 +24,11 @@ from l3d_app.stages.free_space import FILE, FreeSpaceStage
 from l3d_app.tasks.common import background_parameter
 
 
+SMALL_FIELD = {"name": "grid_field", "n_levels": 4, "max_resolution": 64, "log2_hashmap_size": 15}
+SMALL_SAMPLER = {"name": "occupancy", "n_samples": 48, "resolution": 32}
+"""A radiance field and sampler for the stage that a few seconds fit (the tests that read the stage's own logic)."""
+
+
 def _scene(cache, n_train: int = 48, masks: bool = False):
     """The built-in scene at 32 px; ``masks``: its mesh's coverage as the images' alpha (the built-in data has none)."""
     cfg = compose_config("task=volsdf", *VOLSDF_TINY, f"data.cache_dir={cache}", f"data.n_train={n_train}")
@@ -45,25 +50,26 @@ def _fit(stage: FreeSpaceStage, state: MethodState, out) -> FreeRays:
 
 
 def test_free_stretches_end_at_the_true_surface(free_space_run):
-    """The stage of free_space_run (64 px, 48 views, 300 steps). Measured when written: 5.8% of the covered
-    pixels' stretches end more than 0.02 inside the true solid (a bright object over the white background, which
-    the radiance field leaves partly transparent), the median stretch ends 0.043 in front of the surface (0.05 of
-    it the margin), 99.3% of the empty pixels are free through the box."""
+    """The stage of free_space_run (64 px, 48 views, 300 steps), scored on the rays it read off. Measured when
+    written: 2.8% of the covered pixels' stretches end more than 0.02 inside the true solid (a bright object over
+    the white background, which the radiance field leaves partly transparent), the median stretch ends 0.045 in
+    front of the surface (0.05 of it the margin), 98.9% of the empty pixels are free through the box."""
     from l3d_app.geometry.point_mesh_distance import point_mesh_distance
 
     cfg, m = free_space_run.cfg, free_space_run.metrics
-    saved = torch.load(free_space_run.dir / FILE)                    # every training pixel (under max_rays)
-    dist = saved["distance"]                                         # (R,) along unit rays
-    assert torch.equal(saved["index"], torch.arange(dist.shape[0]))
+    saved = torch.load(free_space_run.dir / FILE)                    # a random 50000 of the training pixels
+    keep, dist = saved["index"], saved["distance"]                   # (R,) which, and their distances along unit rays
+    assert keep.shape == (50000,) and bool((keep[1:] > keep[:-1]).all())
     data = DATASETS.build(cfg.data)
     cams = data.cameras[data.train]
-    truth = true_depth_maps(data.mesh, cams, scale=1).reshape(-1)  # camera-Z depth, +inf where no surface
+    truth = true_depth_maps(data.mesh, cams, scale=1).reshape(-1)[keep]   # camera-Z depth, +inf where no surface
     o, d = camera_rays(cams, normalize=False)                      # camera Z = 1: |d| converts t to Z
-    norm = d.reshape(-1, 3).norm(dim=-1)
+    o, d = o.reshape(-1, 3)[keep], d.reshape(-1, 3)[keep]
+    norm = d.norm(dim=-1)
     end_t = dist - float(cfg.stages.free_space.margin)
     hit = torch.isfinite(truth)
     past = hit & (end_t / norm > truth) & torch.isfinite(end_t)     # the stretch ends behind the first surface ...
-    ends = o.reshape(-1, 3)[past] + end_t[past, None] * d.reshape(-1, 3)[past] / norm[past, None]
+    ends = o[past] + end_t[past, None] * d[past] / norm[past, None]
     through = (hit & torch.isinf(end_t)).sum()                       # (or never ends: free through the solid)
     inside = ((point_mesh_distance(ends, data.mesh).distance > 0.02).sum() + through) / hit.sum()   # ... deep in it
     short = (truth[hit] - end_t[hit] / norm[hit]).median()
@@ -71,7 +77,7 @@ def test_free_stretches_end_at_the_true_surface(free_space_run):
     assert inside < 0.08           # free stretches that cut into the true solid
     assert 0.0 < short < 0.12      # where the surface is, the stretch reaches close to it (margin 0.05)
     assert empty > 0.95            # rays that meet no surface are free through the box
-    assert m["free_space_skipped"] is False and m["free_space_rays"] > 0.5 * dist.shape[0]
+    assert m["free_space_skipped"] is False and m["free_space_rays"] > 0.3 * dist.shape[0]
 
 
 def test_the_ray_term_reads_each_batch_rays_own_stretch_end(free_space_run):
@@ -91,7 +97,7 @@ def test_the_ray_term_reads_each_batch_rays_own_stretch_end(free_space_run):
     want = free.ends_per_ray(o.shape[0], None)
     for idx, ends, _ in calls:
         torch.testing.assert_close(ends, want[idx])
-    assert torch.isfinite(want).float().mean() > 0.5          # most training rays carry a claim
+    assert torch.isfinite(want[keep]).float().mean() > 0.5    # most of the rays read off carry a claim
     first, last = sum(c[2] for c in calls[:5]) / 5, sum(c[2] for c in calls[-5:]) / 5
     assert last < 0.5 * first
 
@@ -110,9 +116,10 @@ def test_resume_reads_the_saved_stretches_instead_of_fitting_again(tmp_path):
 
 
 def test_the_front_prior_pulls_the_covered_rays_stretch_ends_forward(tmp_path, volsdf_data_dir, monkeypatch):
-    """The built-in scene given masks (its mesh's coverage), 60 stage steps with and without a large
-    w_front: the prior is evaluated once per step and not at all at 0, and the covered rays' stretches end
-    clearly earlier with it (the density moved to the front)."""
+    """The built-in scene given masks (its mesh's coverage), 40 stage steps of a small field with and without a
+    large w_front, 8000 of its rays read off: the prior is evaluated once per step and not at all at 0, and the
+    covered rays' stretches end clearly earlier with it (the density moved to the front; measured when written:
+    median 3.20 -> 2.45 along the ray)."""
     import l3d_app.stages.free_space as module
 
     calls = []
@@ -124,15 +131,17 @@ def test_the_front_prior_pulls_the_covered_rays_stretch_ends_forward(tmp_path, v
 
     monkeypatch.setattr(module, "termination_distance", spy)
     data, state = _scene(volsdf_data_dir, masks=True)
-    ends = {}
+    ends, index = {}, {}
     for w in (0.0, 2.0):
         state.products.clear()
-        ends[w] = _fit(FreeSpaceStage(steps=60, batch_rays=512, w_front=w), state, tmp_path / f"w{w}")
-        ends[w] = torch.load(tmp_path / f"w{w}" / FILE)["distance"]
+        _fit(FreeSpaceStage(steps=40, batch_rays=256, w_front=w, max_rays=8000, model=SMALL_FIELD,
+                            sampler=SMALL_SAMPLER), state, tmp_path / f"w{w}")
+        saved = torch.load(tmp_path / f"w{w}" / FILE)
+        index[w], ends[w] = saved["index"], saved["distance"]
         if w == 0:
             assert not calls
-    assert len(calls) == 60
-    cov = state.rays.covered
+    assert len(calls) == 40 and torch.equal(index[0.0], index[2.0])     # the same random rays in both fits
+    cov = state.rays.covered[index[0.0]]
     fin = torch.isfinite(ends[0.0]) & torch.isfinite(ends[2.0])
     assert float(ends[2.0][cov & fin].median()) < float(ends[0.0][cov & fin].median()) - 0.05
 
