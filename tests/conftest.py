@@ -98,7 +98,7 @@ def free_space_run(tmp_path_factory):
     cfg = compose_config("task=volsdf", *VOLSDF_TINY, "data.image_size=64",
                          f"data.cache_dir={tmp_path_factory.mktemp('free_space_data')}", "tensorboard=false",
                          "iters=30", "eval_every=30", "batch_rays=256", "stages.sphere_init.steps=20",
-                         "stages.free_space.steps=300", "stages.free_space.batch_rays=1024",
+                         "stages.free_space.steps=300", "+stages.free_space.batch_rays=1024",
                          "+stages.free_space.max_rays=50000", "losses.free_points.weight=0",
                          "losses.free_rays.weight=1",
                          "losses.free_rays.margin_beta=0", "losses.ncc.weight=0", "gif_frames=0", "mesh_resolution=16",

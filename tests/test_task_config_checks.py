@@ -25,7 +25,7 @@ def test_nonnegative_accepts_zero_and_positive_and_positive_rejects_zero():
 @pytest.mark.parametrize("task, override, needle", [
     ("gs_train", "sh_degree=7", "sh_degree must be 0, 1, 2 or 3"),       # used to fail when the schedule reached degree 4
     ("gs_train", "tile_size=0", "tile_size must be a positive number"),   # used to end in ZeroDivisionError
-    ("volsdf", "losses.eikonal.points=-1", "the eikonal term's points must be an integer >= 0"),
+    ("volsdf", "+losses.eikonal.points=-1", "the eikonal term's points must be an integer >= 0"),
     ("volsdf", "mesh_resolution=1", "mesh_resolution must be an integer >= 2"),  # used to fail after training
     ("volsdf", "stages.coarse_to_fine.every=-2", "coarse_to_fine every must be an integer >= 0"),
     ("volsdf", "stages.free_space.opacity=1.5", "free_space opacity must lie in"),
