@@ -51,19 +51,35 @@ def compose():
     return compose_config
 
 
+@pytest.fixture(scope="session")
+def data_cache(tmp_path_factory):
+    """One cache folder for the session's built-in datasets (each file keyed by the dataset's
+    parameters): a scene is rendered once for every test that asks for the same one."""
+    return tmp_path_factory.mktemp("data_cache")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item):
+    """Seed torch's global generator from the test's node id (order-independent), before any
+    fixture of the test is set up (module-scoped ones included)."""
+    torch.manual_seed(zlib.crc32(item.nodeid.encode()))
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    """Print the random-order seed even under -q (pytest-randomly prints it only in the header)."""
+    if config.pluginmanager.hasplugin("randomly"):
+        seed = config.getoption("randomly_seed", None)
+        terminalreporter.write_line(f"random order: --randomly-seed={seed} (pytest-randomly; "
+                                    f"-p no:randomly for file order)")
+
+
 VOLSDF_TINY = ("data.image_size=32", "data.n_train=48", "data.n_val=2", "data.n_test=2", "data.antialias=1",
                "threads=1", "time_budget=0")
 """volsdf on the built-in scene at 32 px (48 training views): the end-to-end tests' size."""
 
 
 @pytest.fixture(scope="session")
-def volsdf_data_dir(tmp_path_factory) -> Path:
-    """One cache of the built-in scene's renders for every volsdf test of the session."""
-    return tmp_path_factory.mktemp("volsdf_data")
-
-
-@pytest.fixture(scope="session")
-def volsdf_run(tmp_path_factory, volsdf_data_dir):
+def volsdf_run(tmp_path_factory, data_cache):
     """One short volsdf run shared by the end-to-end tests (tests/test_volsdf.py): the defaults' parts (density=auto,
     the sphere init, coarse-to-fine levels, colour, eikonal and patch terms) without the free-space stage
     (:func:`free_space_run`), 80 steps of 256 rays from beta 0.1 (the shipped 0.3 has barely begun its anneal
@@ -73,7 +89,7 @@ def volsdf_run(tmp_path_factory, volsdf_data_dir):
 
     from l3d_app.app import run_task
 
-    cfg = compose_config("task=volsdf", *VOLSDF_TINY, f"data.cache_dir={volsdf_data_dir}", "iters=80",
+    cfg = compose_config("task=volsdf", *VOLSDF_TINY, f"data.cache_dir={data_cache}", "iters=80",
                          "eval_every=40", "batch_rays=256", "optim.lr=0.005", "beta=0.1", "stages.sphere_init.steps=50",
                          "stages.free_space.steps=0", "gif_frames=2", "mesh_resolution=32", "eval_points=2000",
                          "mesh_formats=[obj,glb]")
@@ -83,7 +99,7 @@ def volsdf_run(tmp_path_factory, volsdf_data_dir):
 
 
 @pytest.fixture(scope="session")
-def free_space_run(tmp_path_factory):
+def free_space_run(tmp_path_factory, data_cache):
     """One volsdf run with the free-space stage (tests/test_volsdf_free_space.py): the built-in scene at 64 px
     (48 training views), the stage's 300 steps of 1024 rays (50000 of the 196608 training rays read off), then 30 steps of 256 rays whose only free-space
     term is the ray term (weight 1, its ends as the stage left them) and no patch term. What each step handed
@@ -96,7 +112,7 @@ def free_space_run(tmp_path_factory):
     from l3d_app.losses.terms import LossTerms
 
     cfg = compose_config("task=volsdf", *VOLSDF_TINY, "data.image_size=64",
-                         f"data.cache_dir={tmp_path_factory.mktemp('free_space_data')}", "tensorboard=false",
+                         f"data.cache_dir={data_cache}", "tensorboard=false",
                          "iters=30", "eval_every=30", "batch_rays=256", "stages.sphere_init.steps=20",
                          "stages.free_space.steps=300", "+stages.free_space.batch_rays=1024",
                          "+stages.free_space.max_rays=50000", "losses.free_points.weight=0",

@@ -151,10 +151,10 @@ def test_the_patch_loss_acts_until_its_fraction_of_the_steps(volsdf_run):
     assert {e.step for e in events.Scalars("train/ncc_loss")} == set(rays)
 
 
-def test_volsdf_neus_variant_learns(compose, tmp_path, volsdf_data_dir):
+def test_volsdf_neus_variant_learns(compose, tmp_path, data_cache):
     """The NeuS variant must LEARN, as VolSDF does (a shorter run of the same kind as volsdf_run)."""
     assert compose("task=volsdf", "density=neus", "s=1000").density.s == 1000.0
-    cfg = compose("task=volsdf", *TINY, f"data.cache_dir={volsdf_data_dir}", "density=neus", "iters=80",
+    cfg = compose("task=volsdf", *TINY, f"data.cache_dir={data_cache}", "density=neus", "iters=80",
                   "eval_every=40", "batch_rays=256", "optim.lr=0.005", "stages.sphere_init.steps=50", "gif_frames=0",
                   "mesh_resolution=24", "eval_points=500")
     run_task(cfg, out_dir=tmp_path / "run")
@@ -202,9 +202,9 @@ def test_tensorboard_shows_where_the_time_budget_has_moved_the_schedules(compose
     step (step * iters / steps = 20)."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
     from l3d_app.app import RunInterrupted
-    from l3d_app.runtime import training
+    from l3d_app.runtime.budget import TimeBudget
 
-    monkeypatch.setattr(training._LoopClock, "predicted_steps", lambda self, *a: 20.0)
+    monkeypatch.setattr(TimeBudget, "predicted_steps", lambda self, *a: 20.0)
     monkeypatch.setenv("L3D_STOP_AT_STEP", "15")
     cfg = compose("task=volsdf", *[o for o in TINY if not o.startswith(("tensorboard", "data.n_train"))],
                   "tensorboard=true", "data.n_train=8", "data.image_size=16", f"data.cache_dir={tmp_path / 'cache'}",

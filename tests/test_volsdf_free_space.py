@@ -14,14 +14,15 @@ from l3d_app.app import run_task
 from l3d_app.errors import UserError
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.geometry.training_rays import TrainingRays
+from l3d_app.models.background import background_parameter
 from l3d_app.registry import DATASETS
 from l3d_app.render.mesh.rgbd import true_depth_maps
 from l3d_app.render.volume.free_space import FreeRays
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.logger import RunLogger
-from l3d_app.stages.base import MethodState, StageBudget
+from l3d_app.runtime.budget import TimeBudget
+from l3d_app.stages.base import MethodState
 from l3d_app.stages.free_space import FILE, FreeSpaceStage
-from l3d_app.tasks.common import background_parameter
 
 
 SMALL_FIELD = {"name": "grid_field", "n_levels": 4, "max_resolution": 64, "log2_hashmap_size": 15}
@@ -45,7 +46,7 @@ def _fit(stage: FreeSpaceStage, state: MethodState, out) -> FreeRays:
     """``stage`` run alone (no budget) on ``state``, writing into ``out``; its free rays."""
     ctx = RunContext(out_dir=out, device=torch.device("cpu"), generator=torch.Generator().manual_seed(0),
                      logger=RunLogger(out, enabled=False))
-    assert stage.before_training(state, ctx, StageBudget())
+    assert stage.before_training(state, ctx, TimeBudget())
     return state.products["free_rays"]
 
 
@@ -115,7 +116,7 @@ def test_resume_reads_the_saved_stretches_instead_of_fitting_again(tmp_path):
     torch.testing.assert_close(free.far, torch.tensor([3.15, 4.0]))
 
 
-def test_the_front_prior_pulls_the_covered_rays_stretch_ends_forward(tmp_path, volsdf_data_dir, monkeypatch):
+def test_the_front_prior_pulls_the_covered_rays_stretch_ends_forward(tmp_path, data_cache, monkeypatch):
     """The built-in scene given masks (its mesh's coverage), 40 stage steps of a small field with and without a
     large w_front, 8000 of its rays read off: the prior is evaluated once per step and not at all at 0, and the
     covered rays' stretches end clearly earlier with it (the density moved to the front; measured when written:
@@ -130,7 +131,7 @@ def test_the_front_prior_pulls_the_covered_rays_stretch_ends_forward(tmp_path, v
         return real(depth, opacity, near, far)
 
     monkeypatch.setattr(module, "termination_distance", spy)
-    data, state = _scene(volsdf_data_dir, masks=True)
+    data, state = _scene(data_cache, masks=True)
     ends, index = {}, {}
     for w in (0.0, 2.0):
         state.products.clear()
@@ -149,7 +150,7 @@ def test_the_front_prior_pulls_the_covered_rays_stretch_ends_forward(tmp_path, v
 def test_a_stage_whose_product_no_term_reads_does_not_run():
     stage = FreeSpaceStage(steps=10)
     ctx = SimpleNamespace(stopwatch=None)
-    assert stage.before_training(SimpleNamespace(needed=set()), ctx, StageBudget()) and stage.free is None
+    assert stage.before_training(SimpleNamespace(needed=set()), ctx, TimeBudget()) and stage.free is None
     assert stage.metrics() == {"free_space_seconds": 0.0, "free_space_rays": 0, "free_space_skipped": False}
 
 

@@ -9,5 +9,4 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "Stage": "base",
     "Stages": "base",
     "MethodState": "base",
-    "StageBudget": "base",
 })

@@ -5,8 +5,9 @@ gsplat's strategies: it owns its knobs and its schedule and is called at fixed p
 
 - :meth:`Stage.setup`: once, right after the model is built, before anything is rendered (an
   initialisation of the model: :class:`~l3d_app.stages.sphere_init.SphereInit`);
-- :meth:`Stage.before_training`: once, just before the first step, with what the run's time budget leaves
-  it (a fit whose result the loss terms read from ``state.products``:
+- :meth:`Stage.before_training`: once, just before the first step, with the run's time budget
+  (:class:`~l3d_app.runtime.budget.TimeBudget`: its ``stage_deadline`` says until when a stage may run; a fit
+  whose result the loss terms read from ``state.products``:
   :class:`~l3d_app.stages.free_space.FreeSpaceStage`);
 - :meth:`Stage.on_step`: at each step, before the forward pass (a schedule of the model:
   :class:`~l3d_app.stages.coarse_to_fine.CoarseToFine`);
@@ -25,12 +26,7 @@ import torch
 
 from l3d_app.geometry.training_rays import TrainingRays
 from l3d_app.registry import STAGES
-
-MIN_STAGE_SECONDS = 90.0
-"""A stage before training that a time budget gives less wall time than this is skipped: the shortest
-600-step free-space stage measured on the development scenes took 79 s (its first ~35 s the occupancy
-sampler's warm-up, then the read-off of up to 2M rays), rounded up (docs/measured/volsdf.md)."""
-
+from l3d_app.runtime.budget import TimeBudget
 
 @dataclass
 class MethodState:
@@ -64,32 +60,6 @@ class MethodState:
         self.lo, self.hi = (torch.tensor(self.box[i], device=device) for i in (0, 1))
 
 
-@dataclass
-class StageBudget:
-    """What a run's time budget leaves the stages before training.
-
-    Attributes:
-        time_budget: the task's wall seconds (<= 0: no limit).
-        final_seconds: the work predicted after training (the last validation, the test views and the
-            reserve for the artefacts), None when unknown.
-    """
-
-    time_budget: float = 0.0
-    final_seconds: Optional[float] = None
-
-    def deadline(self, elapsed: float, minimum: float = MIN_STAGE_SECONDS) -> Optional[float]:
-        """The task's elapsed wall seconds at which a stage begun at ``elapsed`` must stop: 0.0 (no limit)
-        without a budget; else ``min(budget / 3, elapsed + (budget - elapsed - final) / 2)`` (at most half of
-        what the final work leaves; the third alone when that is unknown); None (skip the stage) when that
-        leaves it under ``minimum`` seconds."""
-        if self.time_budget <= 0:
-            return 0.0
-        deadline = self.time_budget / 3.0
-        if self.final_seconds is not None:
-            deadline = min(deadline, elapsed + 0.5 * (self.time_budget - elapsed - self.final_seconds))
-        return deadline if deadline - elapsed >= minimum else None
-
-
 class Stage:
     """A method's work before and around training (see the module docstring); every hook does nothing
     by default."""
@@ -97,7 +67,7 @@ class Stage:
     def setup(self, state: MethodState, ctx) -> None:
         """Once, after the model is built."""
 
-    def before_training(self, state: MethodState, ctx, budget: StageBudget) -> bool:
+    def before_training(self, state: MethodState, ctx, budget: TimeBudget) -> bool:
         """Once, before the first step; False: interrupted (the run stops)."""
         return True
 
@@ -126,7 +96,7 @@ class Stages:
         for stage in self.stages.values():
             stage.setup(state, ctx)
 
-    def before_training(self, state: MethodState, ctx, budget: StageBudget) -> Optional[str]:
+    def before_training(self, state: MethodState, ctx, budget: TimeBudget) -> Optional[str]:
         """The key of the stage that was interrupted, else None."""
         for key, stage in self.stages.items():
             if not stage.before_training(state, ctx, budget):

@@ -9,20 +9,10 @@ regulariser) with Adam (per-parameter rates as in 3DGS; the means' rate is scale
 scene extent and decays exponentially, a LambdaLR the shared loop steps). The SH degree
 rises by one every ``sh_every`` steps up to ``sh_degree``. Densification is the
 ``strategy=`` group (:mod:`l3d_app.strategies`), checkpointed with the model.
-Every step schedule (the means' LR decay, the SH degree, the strategy's densification,
-resets and ``until``) is read at the nominal step of a
-:class:`~l3d_app.runtime.horizon.Horizon`. ``schedule=steps`` (the default) reads it by
-step: a time budget that binds cuts the schedule where it stops the run.
-``schedule=budget`` lets the training loop predict that stop, so the whole schedule is
-compressed into the steps that fit (in proportion to the training time: the prediction uses
-the mean seconds per step so far) and the run ends with the refinement after the last
-densification; on the development scene ``ground`` at 128 px on 2 AVX2 cores it read lower
-than ``steps`` (val -0.32 / -0.14 dB on seeds 0 / 1: the splats reach the cap sooner, every
-later step is dearer, fewer steps fit; docs/measured/gaussians.md). ``schedule=refine``
-compresses the LR decay and the SH degree as ``budget`` does, but the strategy densifies and
-resets on its step cadence; only the end of its growth phase (``until``) is scaled by the
-steps that fit over ``iters`` (predicted from the recent seconds per step, as the reset guard
-does), so a budget-stopped run still ends with a refinement phase.
+Every step schedule (the means' LR decay, the SH degree, the strategy's densification and
+resets) is read by step: a time budget that binds cuts the schedule where it stops the run, and
+the strategy hears (``info["steps_left"]``) how many steps the budget still leaves at the recent
+seconds per step (:meth:`~l3d_app.runtime.budget.TimeBudget.steps_that_fit`).
 Validation views are evaluated every ``eval_every`` steps (TensorBoard ``val/``, with a
 prediction | truth | error | depth picture); the test views once at the end.
 Outputs: ``test_views.gif``, ``progress.gif`` (a validation view over training),
@@ -39,18 +29,19 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.geometry.gaussian_ply import save_gaussian_ply
 from l3d_app.metrics.image import psnr, ssim
+from l3d_app.models.background import background_parameter
 from l3d_app.models.gaussians import colors_from_views, init_from_points
 from l3d_app.registry import DATASETS, STRATEGIES, TASKS
-from l3d_app.render.gaussians.rasterize import rasterize_gaussians
 from l3d_app.render.gaussians.coverage import shrink_to_coverage
 from l3d_app.render.gaussians.panels import colorize_depth, depth_range, error_map, side_by_side
-from l3d_app.runtime.horizon import Horizon
-from l3d_app.runtime.lr_schedules import exponential, on_horizon
+from l3d_app.render.gaussians.rasterize import rasterize_gaussians
+from l3d_app.runtime.budget import TimeBudget
+from l3d_app.runtime.lr_schedules import exponential
 from l3d_app.runtime.media import save_gif, to_uint8
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import background_parameter, require_positive
-from l3d_app.tasks.viewer_common import finish_viewer, gaussian_view, start_viewer
+from l3d_app.tasks.common import loop_spec, require_positive
+from l3d_app.pipelines.live_viewer import finish_viewer, gaussian_view, start_viewer
 
 
 def _initial_model(cfg, raw, data, generator):
@@ -78,17 +69,12 @@ def _initial_model(cfg, raw, data, generator):
     return model
 
 
-SCHEDULES = ("steps", "budget", "refine")
-
-
 @TASKS.register("gs_train")
 def gs_train(cfg, ctx) -> dict:
     """Train Gaussians; val figures during training, test figures once; gifs / ply / metrics."""
     require_positive(cfg, "iters", "eval_every", "sh_every", "lr_decay_steps", "tile_size", "log_every")
     if cfg.get("sh_degree") not in (0, 1, 2, 3):      # checked now, not when the schedule reaches it mid-run
         raise UserError(f"sh_degree must be 0, 1, 2 or 3, got {cfg.get('sh_degree')!r}")
-    if cfg.get("schedule") not in SCHEDULES:
-        raise UserError(f"schedule must be steps, budget or refine, got {cfg.get('schedule')!r}")
     raw = DATASETS.build(cfg.data)
     if len(raw.val) == 0:
         raise UserError(f"gs_train needs validation views and data '{cfg.data.name}' has none")
@@ -103,27 +89,25 @@ def gs_train(cfg, ctx) -> dict:
     background = background_parameter(cfg.learn_background, data)  # learnt for real captures
     if background["rgb"].requires_grad:
         groups.append(("background", background["rgb"], float(lr.background)))
-    # fused: one vectorised pass per parameter for the whole update (the same rule; it rounds
-    # differently in the last bit): 4.9-5.1 ms against foreach's 11.6-12.1 ms at 63 609 Gaussians
-    # on 2 CPU cores (foreach was no faster than the single-tensor loop there)
+    # fused: one vectorised pass per parameter for the whole update
     opt = torch.optim.Adam([{"params": [p], "lr": r, "name": n} for n, p, r in groups], eps=float(cfg.adam_eps),
                            fused=True)
-    on_budget, refine = cfg.schedule == "budget", cfg.schedule == "refine"
-    horizon = Horizon(int(cfg.iters))     # budget / refine: the loop predicts the budget's stop, the schedules end there
     decay = exponential(float(lr.means_final) / float(lr.means), int(cfg.lr_decay_steps))
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, [on_horizon(decay, horizon)] + [lambda s: 1.0] * (len(groups) - 1))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, [decay] + [lambda s: 1.0] * (len(groups) - 1))
     strategy = STRATEGIES.build(cfg.strategy)
     strategy.initialize(model, opt, extent)
     prog_frames: List[torch.Tensor] = []     # uint8 (H, W, 3) validation panels: checkpointed, so a resumed gif is whole
     trainable = Trainable({"gaussians": model, "background": background}, opt,
-                          extra={"strategy": strategy, "horizon": horizon, "progress_frames": prog_frames},
+                          extra={"strategy": strategy, "progress_frames": prog_frames},
                           schedulers=[sched])
     H, W = data.image_size
     tr, lam, info, step_times = data.train, float(cfg.ssim_lambda), {"width": W, "height": H}, []
     trainable.extra["step_times"] = step_times      # checkpointed: the step costs cover the resumed parts of a run
 
+    budget = TimeBudget.of(ctx, evals_after=len(data.test) / len(data.val))   # the test views
+
     def degree(step: int) -> int:
-        return min(int(cfg.sh_degree), int(horizon.nominal(step)) // int(cfg.sh_every))
+        return min(int(cfg.sh_degree), step // int(cfg.sh_every))
 
     def render(i: int, deg: int):
         return rasterize_gaussians(model.means, model.log_scales3, model.quats, model.opacity_logits, model.sh,
@@ -144,34 +128,11 @@ def gs_train(cfg, ctx) -> dict:
         strategy.step_pre_backward(model, opt, step, info)
         return {"loss": loss, "l1": l1.detach(), "n_gaussians": torch.tensor(float(model.num))}
 
-    def steps_left(step: int) -> float:
-        """Steps after this one on the strategy's schedule: by step, to ``iters`` or fewer where the
-        time budget (at the recent wall seconds per step) ends the run sooner; on the budget's
-        horizon, the nominal steps to ``iters``. The strategy skips an opacity reset near the end."""
-        if on_budget:
-            return int(cfg.iters) - info["schedule"][1]
-        left = int(cfg.iters) - (step + 1)
-        if float(cfg.time_budget) > 0 and step_times:
-            recent = [t for t, _ in step_times[-50:]]
-            seconds = float(cfg.time_budget) - float(cfg.reserve) - ctx.stopwatch.elapsed
-            left = min(left, int(seconds * len(recent) / max(sum(recent), 1e-9)))
-        return left
-
     def after_step(step: int) -> None:
-        if refine:       # events by step; the growth phase ends in proportion to the steps that fit
-            info["schedule"] = (step, step + 1)
-            info["steps_left"] = steps_left(step)     # at the recent seconds per step: the splats only grow
-            info["until_scale"] = min(1.0, (step + 1 + info["steps_left"]) / int(cfg.iters))
-        else:
-            info["schedule"] = horizon.advance(step + 1)      # the strategy's steps on the same schedule
-            info["steps_left"] = steps_left(step)
+        # steps after this one: to iters, or fewer where the budget (at the recent seconds per step) ends sooner
+        fit = budget.steps_that_fit([t for t, _ in step_times[-50:]])
+        info["steps_left"] = int(cfg.iters) - (step + 1) if fit is None else min(int(cfg.iters) - (step + 1), fit)
         logs = strategy.step_post_backward(model, opt, step, info, ctx.generator)
-        if on_budget and step % int(cfg.log_every) == 0:   # how far the compressed schedule has come
-            logs = {**logs, "nominal_step": info["schedule"][1], "predicted_steps": horizon.steps}
-        elif refine and step % int(cfg.log_every) == 0:  # where the growth phase ends, the LR's nominal step
-            logs = {**logs, "nominal_step": horizon.nominal(step + 1), "predicted_steps": horizon.steps}
-            if getattr(strategy, "until", None) is not None:
-                logs["until"] = strategy.phase_end(float(strategy.until), info)
         if logs:
             ctx.logger.log_scalars({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
         step_times.append((time.perf_counter() - info["t0"], time.process_time() - info["c0"]))
@@ -192,11 +153,8 @@ def gs_train(cfg, ctx) -> dict:
         return {**m, "n_gaussians": model.num, "images": {"pred_truth_error_depth": panel}}
 
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
-                       checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="gs_train",
-                       after_step=after_step, log_every=int(cfg.log_every), time_budget=float(cfg.time_budget),
-                       reserve=float(cfg.reserve), reserve_evals=len(data.test) / len(data.val),
-                       horizon=horizon if (on_budget or refine) else None)
+        result = train(ctx, trainable, step_fn, loop_spec(cfg, "gs_train", log_every=int(cfg.log_every)), eval_fn,
+                       budget, after_step)
     finish_viewer(live, ctx, result.step)
     with torch.no_grad():
         pred, target, panel, test = evaluate(data.test, degree(result.step))

@@ -10,17 +10,23 @@ outputs, docs/measured/volsdf.md its figures.
 
 from __future__ import annotations
 
-import time
 from typing import Dict
 
 import torch
 
 from l3d_app.geometry.training_rays import TrainingRays
 from l3d_app.losses.terms import Batch, LossTerms
+from l3d_app.models.background import background_parameter
 from l3d_app.models.sdf_gradients import field_with_gradient
+from l3d_app.pipelines.live_viewer import finish_viewer, sdf_view, start_viewer
+from l3d_app.pipelines.surfaces import surface_mesh, surface_turntables
+from l3d_app.pipelines.views import BeforeAfter, evaluate_views
 from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
+from l3d_app.render.field_mesh import seconds_per_grid_point
+from l3d_app.render.mesh.visibility import cull_to_training_views
 from l3d_app.render.sdf.density_choice import candidate_configs, choose_density, with_density_warmup
 from l3d_app.render.sdf.volume import render_sdf_rays
+from l3d_app.runtime.budget import TimeBudget, views_in_validations
 from l3d_app.runtime.config_values import config_words
 from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.media import save_png
@@ -28,13 +34,9 @@ from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.step_clock import StepClock
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.stages.base import MethodState, StageBudget, Stages
-from l3d_app.stages.surface_outputs import surface_mesh, surface_turntables
-from l3d_app.tasks.common import (background_parameter, require_mesh_formats, require_mesh_resolution,
-                                  require_positive)
-from l3d_app.tasks.viewer_common import finish_viewer, sdf_view, start_viewer
-from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
-                                        mesh_seconds_to_keep, write_turntables)
+from l3d_app.stages.base import MethodState, Stages
+from l3d_app.tasks.common import loop_spec, require_mesh_formats, require_mesh_resolution, require_positive
+from l3d_app.tasks.field_common import write_field_turntables
 
 
 @TASKS.register("volsdf")
@@ -45,7 +47,7 @@ def volsdf(cfg, ctx) -> dict:
     require_mesh_formats(cfg)
     with_density_warmup(cfg.optim, DENSITIES.get("volsdf"))      # auto or an integer >= 0, before the data is read
     losses, stages = LossTerms.build(cfg.losses), Stages.build(cfg.stages)    # checked before the data is read
-    [DENSITIES.build(candidate) for candidate in candidate_configs(cfg.density)]
+    [DENSITIES.build(option) for option in candidate_configs(cfg.density)]
     data = DATASETS.build(cfg.data).to(ctx.device)
     density_cfg, below = choose_density(cfg.density, data)
     dens = DENSITIES.build(density_cfg).to(ctx.device)
@@ -81,16 +83,15 @@ def volsdf(cfg, ctx) -> dict:
         return evaluate_views(render, data.cameras[views], data.images[views], int(cfg.chunk), supersample)
 
     val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val
-    evals_after = evals_after_training(len(val), len(data.test), int(cfg.supersample), int(cfg.val_supersample))
-    reserve = mesh_seconds_to_keep(cfg, ctx, "reserve", model.sdf, box)   # the mesh and its scores
-    before_after, before_seconds = BeforeAfter(), None
+    budget = TimeBudget.of(ctx, reserve=0.0, horizon=horizon, evals_after=views_in_validations(    # the test views
+        len(val), len(data.test), int(cfg.supersample), int(cfg.val_supersample)))    # (the gifs take what is left)
+    reserve = budget.keep_mesh(int(cfg.mesh_resolution), float(cfg.reserve),      # the mesh and its scores
+                               lambda: seconds_per_grid_point(model.sdf, box, device=ctx.device))
+    before_after = BeforeAfter()
     trainable.extra["before_after"] = before_after      # checkpointed: a resumed run keeps its "before"
-    if len(val) and bool(cfg.before_after) and not state.resuming:   # timed: the dearest validation (fuzzy start)
-        t_before = time.perf_counter()
-        before_after.before(ctx, lambda: evaluate(val, int(cfg.val_supersample)))
-        before_seconds = time.perf_counter() - t_before
-    final = None if before_seconds is None else before_seconds * (1 + evals_after) + reserve
-    interrupted = stages.before_training(state, ctx, StageBudget(float(cfg.time_budget), final))
+    if len(val) and bool(cfg.before_after) and not state.resuming:   # the loop's first price (a fuzzy start: the dearest)
+        budget.time_validation(lambda: before_after.before(ctx, lambda: evaluate(val, int(cfg.val_supersample))))
+    interrupted = stages.before_training(state, ctx, budget)
     if interrupted is not None:     # nothing trained yet
         return {"interrupted_in": interrupted}
     losses.setup(state)
@@ -117,11 +118,8 @@ def volsdf(cfg, ctx) -> dict:
                 "images": {"views": picture}, **{k: clock.state[k] for k in ("train_seconds", "cpu_seconds")}}
 
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step_fn, iters, eval_fn=eval_fn if len(val) else None,
-                       eval_every=int(cfg.eval_every), checkpoint_every=int(cfg.checkpoint_every),
-                       resume=bool(cfg.resume), desc="volsdf", after_step=clock.stop,
-                       time_budget=float(cfg.time_budget), reserve=reserve,
-                       reserve_evals=evals_after, horizon=horizon, eval_price=before_seconds)
+        result = train(ctx, trainable, step_fn, loop_spec(cfg, "volsdf"), eval_fn if len(val) else None, budget,
+                       clock.stop)
     finish_viewer(live, ctx, result.step)
     model.eval()
     with torch.no_grad():
@@ -138,7 +136,8 @@ def volsdf(cfg, ctx) -> dict:
     frames = 0
     if int(cfg.gif_frames) > 0:
         with ctx.stopwatch.stage("gif"):
-            frames = write_turntables(cfg, ctx, data, surface_turntables(model.sdf, render, box, int(cfg.chunk)))
+            frames = write_field_turntables(cfg, ctx, data, surface_turntables(model.sdf, render, box, int(cfg.chunk)),
+                                            budget)
     seconds = {f"{k}_seconds": round(ctx.stopwatch.stages.get(k, 0.0), 4) for k in ("mesh", "gif")}
     return {**metrics, **{k: v for k, v in result.val_metrics().items() if k in ("val_psnr", "val_ssim")},
             "density": str(density_cfg["name"]), "cameras_below_fraction": round(below, 4),
