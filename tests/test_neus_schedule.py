@@ -118,9 +118,9 @@ def test_a_densitys_shorthand_is_refused_under_the_other(compose, override, owne
 @pytest.mark.parametrize("override", ["beta=0.1", "density.mode=fixed", "density.beta_end=0.002"])
 def test_density_auto_takes_volsdfs_width_knobs_for_both(compose, override):
     """Under the default ``density=auto`` VolSDF's width knobs drive both densities (NeuS: s = 1 / beta)."""
-    from l3d_app.render.sdf.density_choice import candidate_configs
+    from l3d_app.render.sdf.density_choice import possible_configs
     cfg = compose("task=volsdf", override)
-    assert cfg.density.name == "auto" and len(candidate_configs(cfg.density)) == 2
+    assert cfg.density.name == "auto" and len(possible_configs(cfg.density)) == 2
 
 
 def test_density_auto_refuses_what_only_one_density_reads(compose):
@@ -128,11 +128,11 @@ def test_density_auto_refuses_what_only_one_density_reads(compose):
     densities only: refused before the data is read."""
     from hydra.errors import ConfigCompositionException
     from l3d_app.errors import UserError
-    from l3d_app.render.sdf.density_choice import candidate_configs
+    from l3d_app.render.sdf.density_choice import possible_configs
     with pytest.raises(ConfigCompositionException):
         compose("task=volsdf", "s=200")
     with pytest.raises(UserError, match="alpha=50 is VolSDF.s alone"):
-        candidate_configs(compose("task=volsdf", "alpha=50").density)
+        possible_configs(compose("task=volsdf", "alpha=50").density)
 
 
 def test_a_loaded_annealed_state_renders_with_its_last_s():

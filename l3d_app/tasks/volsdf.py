@@ -24,7 +24,7 @@ from l3d_app.pipelines.views import BeforeAfter, evaluate_views
 from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
 from l3d_app.render.field_mesh import seconds_per_grid_point
 from l3d_app.render.mesh.visibility import cull_to_training_views
-from l3d_app.render.sdf.density_choice import candidate_configs, choose_density, with_density_warmup
+from l3d_app.render.sdf.density_choice import choose_density, possible_configs, with_density_warmup
 from l3d_app.render.sdf.volume import render_sdf_rays
 from l3d_app.runtime.budget import TimeBudget, views_in_validations
 from l3d_app.runtime.config_values import config_words
@@ -47,7 +47,7 @@ def volsdf(cfg, ctx) -> dict:
     require_mesh_formats(cfg)
     with_density_warmup(cfg.optim, DENSITIES.get("volsdf"))      # auto or an integer >= 0, before the data is read
     losses, stages = LossTerms.build(cfg.losses), Stages.build(cfg.stages)    # checked before the data is read
-    [DENSITIES.build(option) for option in candidate_configs(cfg.density)]
+    [DENSITIES.build(option) for option in possible_configs(cfg.density)]
     data = DATASETS.build(cfg.data).to(ctx.device)
     density_cfg, below = choose_density(cfg.density, data)
     dens = DENSITIES.build(density_cfg).to(ctx.device)

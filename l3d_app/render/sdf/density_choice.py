@@ -54,7 +54,7 @@ def neus_config(cfg: Mapping) -> Dict[str, Any]:
             "anneal_fraction": cfg["anneal_fraction"]}
 
 
-def candidate_configs(cfg: Mapping) -> Tuple[Mapping, ...]:
+def possible_configs(cfg: Mapping) -> Tuple[Mapping, ...]:
     """Every density config ``cfg`` (``cfg.density``) may become: itself, or for ``auto`` both densities'
     (so that each one's knobs are checked before the data is read)."""
     if str(cfg["name"]) != "auto":
@@ -75,7 +75,7 @@ def choose_density(cfg: Mapping, data) -> Tuple[Mapping, float]:
     fraction = below_fraction(centres, data_up(data).double(), box.mean(dim=0))
     if str(cfg["name"]) != "auto":
         return cfg, fraction
-    candidate_configs(cfg)
+    possible_configs(cfg)
     chosen = (neus_config(cfg) if fraction >= float(cfg.get("below_fraction", BELOW_FRACTION))
               else volsdf_config(cfg))
     return chosen, fraction
