@@ -89,7 +89,7 @@ RESUMED_RATES = {
     "volsdf": ("task=volsdf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16", "data.n_train=4",
                "data.n_val=1", "data.n_test=1", "time_budget=0", "batch_rays=64", "stages.free_space.steps=0",
                "stages.sphere_init.steps=5", "mesh_resolution=16", "eval_points=500", "before_after=false",
-               "sampler.resolution=16"),
+               "+sampler.resolution=16"),
     "fit_point": FIT_POINT,
 }
 

@@ -154,7 +154,7 @@ def test_render_path_on_a_gs_train_run_matches_the_model(compose, tmp_path, data
 
 FIELD_RUN = ["gif_frames=0", "before_after=false", "time_budget=0"]
 VOLSDF_RUN = [*FIELD_RUN, "iters=30", "eval_every=30", "supersample=1", "stages.sphere_init.steps=50", "stages.free_space.steps=0",
-              "mesh_resolution=16", "sampler.resolution=24"]
+              "mesh_resolution=16", "+sampler.resolution=24"]
 
 
 @pytest.mark.parametrize("task, extra", [
