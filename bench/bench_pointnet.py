@@ -37,7 +37,9 @@ def main() -> None:
     ap.add_argument("--seg", action="store_true", help="also pointnet_seg for each model")
     ap.add_argument("--reuse", action="store_true")
     ap.add_argument("--out", default="bench_pointnet", help="the runs go to outputs/OUT/<task>_<model>")
-    args, extra = ap.parse_known_args()
+    argv = sys.argv[1:]          # key=value words are overrides wherever they stand (not --models choices)
+    extra = [w for w in argv if "=" in w and not w.startswith("-")]
+    args = ap.parse_args([w for w in argv if w not in extra])
     rows = []
     for task in ("pointnet_cls",) + (("pointnet_seg",) if args.seg else ()):
         for model in args.models:
