@@ -26,7 +26,7 @@ The fast path of :func:`l3d_app.render.gaussians.rasterize.rasterize_gaussians`:
 from __future__ import annotations
 
 import math
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 
@@ -95,12 +95,17 @@ def pixel_centres(width: int, height: int, dtype, device) -> torch.Tensor:
 @torch.no_grad()
 def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: torch.Tensor,
                       mean2d: torch.Tensor, conic: torch.Tensor, opacity: torch.Tensor,
-                      width: int, height: int, tile: int, max_elements: int = 1 << 22
-                      ) -> Tuple[torch.Tensor, torch.Tensor]:
+                      width: int, height: int, tile: int, max_elements: int = 1 << 22,
+                      rays: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     """Flat (pixel, splat) pairs with ``alpha >= 1/255``; each pixel's pairs are one run, by depth.
 
     Args: the output of :func:`bin_tiles`; mean2d (M, 2), conic (M, 3) ``(A, B, C)`` of
         the inverse 2D covariance, opacity (M,); image and tile size (px).
+        rays: surfels only (:mod:`l3d_app.render.gaussians.surfels`): (M, 9) the row-major
+            3x3 matrix ``A`` taking a pixel ``(x, y, 1)`` to ``c`` with the ray-splat
+            intersection ``(u, v) = (c0, c1) / c2`` (in front of the camera where ``c2 > 0``);
+            the quadratic form is then ``min(d^T conic d, u^2 + v^2)`` (``conic`` is the
+            low-pass floor).
     Returns: pix (K,) pixel index ``row * width + col``, spl (K,) splat index.
     """
     dev, dt = mean2d.device, mean2d.dtype
@@ -111,6 +116,7 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
     # so the arithmetic below runs on contiguous (G, L) arrays; gathers by index_select, on CPU
     # several times faster than advanced indexing
     cols = [torch.cat([x.contiguous(), x.new_zeros(1)]) for x in (*mean2d.unbind(1), *conic.unbind(1), opacity)]
+    ray_cols = [] if rays is None else [torch.cat([x.contiguous(), x.new_zeros(1)]) for x in rays.unbind(1)]
     sidp = torch.cat([sid, sid.new_full((1,), M)])
     ly, lx = torch.meshgrid(torch.arange(tile, device=dev), torch.arange(tile, device=dev), indexing="ij")
     ly, lx = ly.reshape(-1), lx.reshape(-1)
@@ -139,6 +145,8 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
                 coef = torch.stack([A * ox * ox + 2 * B * ox * oy + C * oy * oy, -2 * (A * ox + B * oy),
                                     -2 * (B * ox + C * oy), A, 2 * B, C], 1)            # (G, 6, L)
                 q = torch.matmul(mono, coef)                                           # (G, P, L)
+                if ray_cols:
+                    q = torch.minimum(q, _ray_splat_form(ray_cols, s, L, x0, y0, lx, ly, dt))
                 # alpha = o exp(-q/2) >= 1/255  <=>  q <= 2 ln(255 o)   (padding: o = 0, never)
                 thr = 2.0 * torch.log(o * 255.0)
                 f = torch.nonzero((q <= thr[:, None, :]).reshape(-1)).reshape(-1)
@@ -152,6 +160,21 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
                 spl_out.append(sp)
                 pix_out.append(pix)
     return torch.cat(pix_out), torch.cat(spl_out)
+
+
+def _ray_splat_form(ray_cols, s, L, x0, y0, lx, ly, dt) -> torch.Tensor:
+    """(G, P, L) ``u^2 + v^2`` of the ray-splat intersections of the pixels of G tiles
+    (tile origins ``x0``, ``y0`` (G,), local offsets ``lx``, ``ly`` (P,)) with the splats ``s``
+    (G*L,), from the gathered rows of ``A`` (``ray_cols``, 9 padded columns); +inf where the
+    intersection lies behind the camera (``c2 <= 0``; padding has ``A = 0``)."""
+    a = [c.index_select(0, s).reshape(-1, L) for c in ray_cols]                     # each (G, L)
+    px = (x0.to(dt) + 0.5)[:, None, None] + lx.to(dt)[None, :, None]                 # (G, P, 1)
+    py = (y0.to(dt) + 0.5)[:, None, None] + ly.to(dt)[None, :, None]
+    c0, c1, c2 = (a[3 * k][:, None] * px + a[3 * k + 1][:, None] * py + a[3 * k + 2][:, None] for k in range(3))
+    front = c2 > 0
+    c2 = torch.where(front, c2, torch.ones_like(c2))
+    u, v = c0 / c2, c1 / c2
+    return torch.where(front, u * u + v * v, torch.full_like(u, float("inf")))
 
 
 def _segments(pix: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
