@@ -44,7 +44,8 @@ ALLOWED = {  # layer -> layers its modules may import (besides their own layer)
     "strategies": {"models", "render", "geometry", "runtime", "base"},  # act on a model's tensors
     "viewer": {"geometry", "runtime", "base"},  # the browser page: takes snapshot / render callables
     "losses": {"render", "metrics", "diffusion", "geometry", "runtime", "base"},  # rendering losses render
-    "tasks": MIDDLE | {"geometry", "runtime", "base"},
+    "pipelines": MIDDLE | {"geometry", "runtime", "base"},  # composes the middle layer for several tasks (plain arguments)
+    "tasks": MIDDLE | {"pipelines", "geometry", "runtime", "base"},
     "report": {"runtime", "base"},
     "app": MIDDLE | {"tasks", "sweep_jobs", "geometry", "runtime", "base"},
     "sweep_jobs": {"base"},      # the app's sweep bookkeeping (reads Hydra's job config)

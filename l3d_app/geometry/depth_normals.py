@@ -23,10 +23,13 @@ def depth_to_points(depth: torch.Tensor, cams: Cameras) -> torch.Tensor:
 
 def depth_to_normals(depth: torch.Tensor, cams: Cameras, eps: float = 1e-12) -> torch.Tensor:
     """(B, H, W, 3) unit world normals of depth maps (B, H, W) by central differences, facing
-    the camera; zero on the one-pixel border (no neighbour on one side)."""
+    the camera; zero on the one-pixel border (no neighbour on one side) and where one of the four
+    neighbours has no depth (<= 0: no surface)."""
     P = depth_to_points(depth, cams)
     dv = P[:, 2:, 1:-1] - P[:, :-2, 1:-1]
     du = P[:, 1:-1, 2:] - P[:, 1:-1, :-2]
     n = torch.cross(dv, du, dim=-1)
     n = n * torch.rsqrt((n * n).sum(-1, keepdim=True).clamp_min(eps))
+    has = (depth[:, 2:, 1:-1] > 0) & (depth[:, :-2, 1:-1] > 0) & (depth[:, 1:-1, 2:] > 0) & (depth[:, 1:-1, :-2] > 0)
+    n = torch.where(has[..., None], n, torch.zeros_like(n))
     return torch.nn.functional.pad(n, (0, 0, 1, 1, 1, 1))

@@ -2,8 +2,8 @@
 
 :func:`fuse_depth_maps` follows KinectFusion / Open3D's ``ScalableTSDFVolume``: voxels of side
 ``voxel`` (world units) on a grid over the depth maps' points (clipped to a box), of which only
-the BAND near an observed surface is kept (blocks of ``block``^3 voxels holding a depth point,
-grown by the truncation distance). Each view updates every band voxel it sees in front of the
+the BAND near an observed surface is kept (the voxels within the truncation distance, per axis,
+of a voxel holding a depth point). Each view updates every band voxel it sees in front of the
 camera with the signed distance along the optical axis ``sdf = depth(p) - z(voxel)`` (``p`` the
 voxel centre's projection; the depth there interpolated bilinearly in inverse depth, which is exact
 on a plane, where the four pixels around ``p`` hold one surface, else the pixel's), truncated: ``min(1, sdf / trunc)``, skipped where
@@ -65,30 +65,30 @@ def _unflatten(index: torch.Tensor, dims) -> torch.Tensor:
     return torch.stack([index // (Y * Z), (index // Z) % Y, index % Z], -1)
 
 
-def _band(points: torch.Tensor, lo: torch.Tensor, voxel: float, dims, trunc: float, block: int) -> torch.Tensor:
-    """Sorted flat indices of the voxels of every block within ``trunc`` of a point (M,)."""
-    dev = points.device
-    bd = [-(-d // block) for d in dims]
+def _band(points: torch.Tensor, lo: torch.Tensor, voxel: float, dims, trunc: float) -> torch.Tensor:
+    """Sorted flat indices (M,) of the voxels within ``trunc`` (per axis) of a point's voxel: the
+    points' voxels dilated by a box, separably (a running count along each axis)."""
     ijk = ((points - lo) / voxel).round().long()
-    b = torch.div(ijk, block, rounding_mode="floor")
-    occ = torch.zeros(bd, dtype=torch.float32, device=dev)
-    occ[b[:, 0].clamp(0, bd[0] - 1), b[:, 1].clamp(0, bd[1] - 1), b[:, 2].clamp(0, bd[2] - 1)] = 1.0
-    reach = int(math.ceil(trunc / (block * voxel)))          # blocks a voxel within trunc of a point can be away
-    occ = torch.nn.functional.max_pool3d(occ[None, None], 2 * reach + 1, stride=1, padding=reach)[0, 0] > 0
-    blocks = torch.nonzero(occ)                                                        # (Nb, 3)
-    r = torch.arange(block, device=dev)
-    local = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
-    vox = (blocks[:, None, :] * block + local[None]).reshape(-1, 3)
-    inside = (vox < torch.tensor(dims, device=dev)).all(-1)
-    vox = vox[inside]
-    return torch.sort((vox[:, 0] * dims[1] + vox[:, 1]) * dims[2] + vox[:, 2]).values
+    for a in range(3):
+        ijk[:, a].clamp_(0, dims[a] - 1)
+    occ = torch.zeros(dims, dtype=torch.int32, device=points.device)
+    occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1
+    r = int(math.ceil(trunc / voxel))
+    for a in range(3):
+        c = torch.cumsum(occ, a, dtype=torch.int32)
+        n = dims[a]
+        hi = c.narrow(a, min(r, n - 1), n - min(r, n - 1))            # count up to i + r (clamped at the end)
+        hi = torch.cat([hi, c.narrow(a, n - 1, 1).expand_as(c.narrow(a, 0, min(r, n - 1)))], a)
+        lo_ = torch.cat([torch.zeros_like(c.narrow(a, 0, min(r + 1, n))), c.narrow(a, 0, n - min(r + 1, n))], a)
+        occ = (hi - lo_ > 0).to(torch.int32)
+    return torch.nonzero(occ.reshape(-1)).reshape(-1)
 
 
 @torch.no_grad()
 def fuse_depth_maps(depth: torch.Tensor, cams: Cameras, voxel: float, trunc: float,
                     colors: Optional[torch.Tensor] = None, valid: Optional[torch.Tensor] = None,
-                    box: Optional[Sequence[Sequence[float]]] = None, carve: bool = True, block: int = 8,
-                    max_voxels: int = 60_000_000) -> TSDFVolume:
+                    box: Optional[Sequence[Sequence[float]]] = None, carve: bool = True,
+                    max_voxels: int = 40_000_000) -> TSDFVolume:
     """Fuse V depth maps into a :class:`TSDFVolume` (see the module docstring).
 
     Args:
@@ -98,7 +98,7 @@ def fuse_depth_maps(depth: torch.Tensor, cams: Cameras, voxel: float, trunc: flo
         valid: (V, H, W) bool, pixels with a surface (default: finite depth > 0); the others
             are empty (free space with ``carve``, ignored without).
         box: ((3,), (3,)) world box the grid may not leave (default: the points' bounds).
-        block: band block side (voxels); max_voxels: bound on the grid (a UserError beyond it).
+        max_voxels: bound on the grid (a UserError beyond it).
     """
     if not (voxel > 0 and trunc > voxel):
         raise UserError(f"TSDF fusion needs voxel > 0 and trunc > voxel, got voxel={voxel}, trunc={trunc}")
@@ -122,68 +122,80 @@ def fuse_depth_maps(depth: torch.Tensor, cams: Cameras, voxel: float, trunc: flo
     dims = tuple(int(x) for x in (torch.ceil((hi - lo) / voxel) + 1).tolist())
     if math.prod(dims) > max_voxels:
         raise UserError(f"TSDF grid of {dims} voxels (voxel {voxel:g}) exceeds {max_voxels}: use a larger voxel")
-    index = _band(points, lo, voxel, dims, trunc, block)
+    index = _band(points, lo, voxel, dims, trunc)
     vol = TSDFVolume(lo, float(voxel), dims, float(trunc), index, torch.zeros(index.shape[0], dtype=dt, device=dev),
                      torch.zeros(index.shape[0], dtype=dt, device=dev),
                      torch.zeros(index.shape[0], 3, dtype=dt, device=dev),
                      torch.zeros(index.shape[0], dtype=dt, device=dev))
-    centres = vol.centres()
-    rgb = None if colors is None else colors.to(device=dev, dtype=dt).reshape(V, H * W, 3)
+    centres = vol.centres().t().contiguous()
+    rgb = None if colors is None else colors.to(device=dev, dtype=dt)
     for v in range(V):
-        _integrate(vol, centres, cams[v], depth[v].reshape(-1), valid[v].reshape(-1),
-                   None if rgb is None else rgb[v], carve)
+        _integrate(vol, centres, cams[v], depth[v], valid[v], None if rgb is None else rgb[v], carve)
     return vol
 
 
-def _sample_depth(pix: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor, width: int, height: int,
-                  jump: float):
-    """Depth at pixel positions (M, 2): bilinear in INVERSE depth (exact on a plane) where the four
-    pixel centres around the position all hold a surface within ``jump`` of each other, else the
-    pixel the position falls in. Returns depth (M,), the nearest pixel's index (M,), in-image (M,)
-    and empty (M,): all four pixels around the position (and the one it falls in) hold no surface."""
-    col, row = pix[:, 0].floor().long(), pix[:, 1].floor().long()
-    inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
-    at = torch.where(inside, row * width + col, torch.zeros_like(col))
-    d = depth.index_select(0, at)
-    g = pix - 0.5
-    base = g.floor()
-    fx, fy = (g - base).unbind(1)
-    c0 = base[:, 0].long().clamp(0, width - 2)
-    r0 = base[:, 1].long().clamp(0, height - 2)
-    corners = [(r0 + dr) * width + c0 + dc for dr in (0, 1) for dc in (0, 1)]
-    ds = torch.stack([depth.index_select(0, c) for c in corners])                   # (4, M)
-    vs = torch.stack([valid.index_select(0, c) for c in corners])
-    empty = ~vs.any(0) & ~valid.index_select(0, at)
-    ok = vs.all(0)
-    ok &= (ds.amax(0) - ds.amin(0) < jump) & (base[:, 0] >= 0) & (base[:, 1] >= 0) & \
-        (base[:, 0] <= width - 2) & (base[:, 1] <= height - 2)
-    wts = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy])
-    inv = (wts / torch.where(ok[None], ds, torch.ones_like(ds))).sum(0)
-    return torch.where(ok, 1.0 / inv, d), at, inside, empty
+def _neighbourhoods(depth: torch.Tensor, valid: torch.Tensor, jump: float) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Per 2x2 block of pixel centres of one view (the image padded by one empty pixel on each
+    side, so a block is indexed by its top-left pixel ``(row + 1) * (W + 1) + col + 1``...): its four
+    depths and inverse depths (0 where empty) as a ((H+1)(W+1), 8) table, and its kind (uint8): 1 the
+    four hold one surface (within ``jump``: interpolate), 2 all empty, 0 otherwise."""
+    H, W = depth.shape
+    d = torch.nn.functional.pad(torch.where(valid, depth, torch.zeros_like(depth)), (1, 1, 1, 1))
+    corners = [d[:-1, :-1], d[:-1, 1:], d[1:, :-1], d[1:, 1:]]
+    ds = torch.stack(corners, -1).reshape(-1, 4)                                   # ((H+1)(W+1), 4)
+    has = ds > 0
+    inv = torch.where(has, 1.0 / torch.where(has, ds, torch.ones_like(ds)), torch.zeros_like(ds))
+    one = has.all(-1) & (ds.amax(-1) - ds.amin(-1) < jump)
+    kind = torch.where(one, 1, torch.where(~has.any(-1), 2, 0)).to(torch.uint8)
+    return torch.cat([ds, inv], -1).contiguous(), kind
 
 
 def _integrate(vol: TSDFVolume, centres: torch.Tensor, cam: Cameras, depth: torch.Tensor, valid: torch.Tensor,
                rgb: Optional[torch.Tensor], carve: bool) -> None:
-    """One view's update of every band voxel (in place)."""
-    pix, z = cam.project(centres)
-    pix, z = pix[0], z[0]
-    d, at, inside, empty = _sample_depth(pix, depth, valid, cam.width, cam.height, vol.trunc)
-    seen = (z > 0) & inside
-    surface = valid.index_select(0, at) & seen
+    """One view's update of every band voxel (in place): depth (H, W), valid (H, W), rgb (H, W, 3).
+
+    The depth at a voxel's projection ``(u, v)``: bilinear in inverse depth among the four pixel
+    centres around it when they hold one surface (within the truncation of each other), else the
+    depth of the pixel it falls in (the nearest centre); free space where all four are empty."""
+    H, W = depth.shape
+    table, kind = _neighbourhoods(depth, valid, vol.trunc)
+    KR = (cam.K()[0] @ cam.R[0]).tolist()
+    Kt = (cam.K()[0] @ cam.t[0]).tolist()
+    X, Y, Z = centres                                          # (3, M) rows: one contiguous pass per term
+    hx, hy, z = (X.mul(KR[i][0]).add_(Y, alpha=KR[i][1]).add_(Z, alpha=KR[i][2]).add_(Kt[i]) for i in range(3))
+    front = z > 0
+    inv_z = torch.where(front, z, torch.ones_like(z)).reciprocal_()
+    gx = hx.mul_(inv_z).add_(0.5)                  # padded pixel-centre coordinates: centre (c+1) at c + 1.5
+    gy = hy.mul_(inv_z).add_(0.5)
+    seen = front & (gx >= 0.5) & (gx < W + 0.5) & (gy >= 0.5) & (gy < H + 0.5)
+    c0, r0 = gx.floor(), gy.floor()
+    fx, fy = gx - c0, gy - r0
+    at = r0.mul_(W + 1).add_(c0).mul_(seen).long()
+    row = table.index_select(0, at)                                                  # (M, 8)
+    k = kind.index_select(0, at)
+    bil = torch.lerp(torch.lerp(row[:, 4], row[:, 5], fx), torch.lerp(row[:, 6], row[:, 7], fx), fy)
+    near = row.gather(1, ((fy >= 0.5).long() * 2 + (fx >= 0.5).long())[:, None])[:, 0]
+    d = torch.where(k == 1, 1.0 / torch.where(k == 1, bil, torch.ones_like(bil)), near)
+    surface = seen & (d > 0)
     sdf = d - z
-    obs = torch.where(surface, (sdf / vol.trunc).clamp(max=1.0), torch.ones_like(sdf))
-    update = torch.where(surface, sdf > -vol.trunc, seen & empty & carve)
+    obs = (sdf / vol.trunc).clamp(max=1.0)
+    update = torch.where(surface, sdf > -vol.trunc, seen & (k == 2) & carve)
+    obs = torch.where(surface, obs, torch.ones_like(obs))
     w = update.to(vol.weight.dtype)
     vol.tsdf = torch.where(update, (vol.tsdf * vol.weight + obs) / (vol.weight + w).clamp_min(1), vol.tsdf)
-    vol.weight = vol.weight + w
-    near = (surface & (sdf.abs() < COLOR_BAND * vol.voxel)).to(vol.weight.dtype)
-    if rgb is not None:
-        c = rgb.index_select(0, at)
-        vol.color = (vol.color * vol.color_weight[:, None] + c * near[:, None]) / \
-            (vol.color_weight + near).clamp_min(1)[:, None]
-    else:
-        vol.color = torch.where(near[:, None] > 0, torch.full_like(vol.color, 0.5), vol.color)
-    vol.color_weight = vol.color_weight + near
+    vol.weight += w
+    idx = torch.nonzero(surface & (sdf.abs() < COLOR_BAND * vol.voxel)).reshape(-1)
+    if idx.numel() == 0:
+        return
+    if rgb is None:
+        c = torch.full((idx.numel(), 3), 0.5, dtype=vol.color.dtype, device=idx.device)
+    else:                                                     # the pixel the voxel falls in
+        pix = (gy.index_select(0, idx) - 0.5).long().clamp(0, H - 1) * W + \
+            (gx.index_select(0, idx) - 0.5).long().clamp(0, W - 1)
+        c = rgb.reshape(-1, 3).index_select(0, pix)
+    cw = vol.color_weight.index_select(0, idx)
+    vol.color.index_copy_(0, idx, (vol.color.index_select(0, idx) * cw[:, None] + c) / (cw + 1)[:, None])
+    vol.color_weight.index_add_(0, idx, torch.ones_like(cw))
 
 
 @torch.no_grad()
