@@ -144,12 +144,13 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
                 oy = v - (y0.to(dt) + 0.5)[:, None]
                 coef = torch.stack([A * ox * ox + 2 * B * ox * oy + C * oy * oy, -2 * (A * ox + B * oy),
                                     -2 * (B * ox + C * oy), A, 2 * B, C], 1)            # (G, 6, L)
-                q = torch.matmul(mono, coef)                                           # (G, P, L)
-                if ray_cols:
-                    q = torch.minimum(q, _ray_splat_form(ray_cols, s, L, x0, y0, lx, ly, dt))
                 # alpha = o exp(-q/2) >= 1/255  <=>  q <= 2 ln(255 o)   (padding: o = 0, never)
                 thr = 2.0 * torch.log(o * 255.0)
-                f = torch.nonzero((q <= thr[:, None, :]).reshape(-1)).reshape(-1)
+                if ray_cols:
+                    hit = _ray_splat_hits(mono, coef, ray_cols, s, L, x0, y0, thr, dt)
+                else:
+                    hit = torch.matmul(mono, coef) <= thr[:, None, :]                 # (G, P, L)
+                f = torch.nonzero(hit.reshape(-1)).reshape(-1)
                 gp = torch.div(f, L, rounding_mode="floor")                            # (tile, pixel)
                 col, row = x0[:, None] + lx, y0[:, None] + ly                          # (G, P)
                 pix = torch.where((col < width) & (row < height), row * width + col, -1).reshape(-1).index_select(0, gp)
@@ -162,19 +163,22 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
     return torch.cat(pix_out), torch.cat(spl_out)
 
 
-def _ray_splat_form(ray_cols, s, L, x0, y0, lx, ly, dt) -> torch.Tensor:
-    """(G, P, L) ``u^2 + v^2`` of the ray-splat intersections of the pixels of G tiles
-    (tile origins ``x0``, ``y0`` (G,), local offsets ``lx``, ``ly`` (P,)) with the splats ``s``
-    (G*L,), from the gathered rows of ``A`` (``ray_cols``, 9 padded columns); +inf where the
-    intersection lies behind the camera (``c2 <= 0``; padding has ``A = 0``)."""
+def _ray_splat_hits(mono, coef, ray_cols, s, L, x0, y0, thr, dt) -> torch.Tensor:
+    """(G, P, L) bool: the low-pass form (``mono @ coef``) or the ray-splat form ``u^2 + v^2`` is
+    within ``thr`` (G, L), for the pixels of G tiles (origins ``x0``, ``y0`` (G,); ``mono`` (P, 6)
+    their local monomials ``(1, lx, ly, ...)``) and the splats ``s`` (G*L,) whose rows of ``A`` are
+    ``ray_cols`` (9 padded columns). ``c = A (x, y, 1)`` is linear in the local offsets, so its three
+    components come from the same matmul as the low-pass form; ``u^2 + v^2 <= thr`` is tested as
+    ``c0^2 + c1^2 <= thr c2^2`` with ``c2 > 0`` (the intersection in front of the camera): no division."""
     a = [c.index_select(0, s).reshape(-1, L) for c in ray_cols]                     # each (G, L)
-    px = (x0.to(dt) + 0.5)[:, None, None] + lx.to(dt)[None, :, None]                 # (G, P, 1)
-    py = (y0.to(dt) + 0.5)[:, None, None] + ly.to(dt)[None, :, None]
-    c0, c1, c2 = (a[3 * k][:, None] * px + a[3 * k + 1][:, None] * py + a[3 * k + 2][:, None] for k in range(3))
-    front = c2 > 0
-    c2 = torch.where(front, c2, torch.ones_like(c2))
-    u, v = c0 / c2, c1 / c2
-    return torch.where(front, u * u + v * v, torch.full_like(u, float("inf")))
+    px0, py0 = (x0.to(dt) + 0.5)[:, None], (y0.to(dt) + 0.5)[:, None]
+    zero = torch.zeros_like(a[0])
+    comps = [torch.stack([a[3 * k] * px0 + a[3 * k + 1] * py0 + a[3 * k + 2], a[3 * k], a[3 * k + 1],
+                          zero, zero, zero], 1) for k in range(3)]                     # each (G, 6, L)
+    full = torch.matmul(mono, torch.cat([coef, *comps], 2))                            # (G, P, 4L)
+    q, c0, c1, c2 = full.split(L, 2)
+    t = thr[:, None, :]
+    return (q <= t) | ((c2 > 0) & (c0 * c0 + c1 * c1 <= t * c2 * c2))
 
 
 def _segments(pix: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
