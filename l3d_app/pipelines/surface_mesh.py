@@ -4,8 +4,9 @@ marching cubes, culling to what the training cameras see, and scores against a t
 :func:`fused_mesh` renders every training view (``render(view) -> {"median_depth", "alpha",
 "color"}``), keeps the pixels where the accumulated opacity passes 0.5 (where the median depth,
 the depth at which the transmittance crosses 0.5, is defined), sizes the voxel grid by the scene:
-the box of those pixels' points (inside the data's scene box) over ``resolution`` voxels along its
-longest side, the truncation ``truncation`` voxels, fuses depth and colour
+the box of those pixels' points (inside the data's scene box, without the 0.1% outermost per axis)
+over ``resolution`` voxels along its longest side, the truncation ``truncation`` voxels, the grid
+over that box grown by 5% and the truncation, fuses depth and colour
 (:func:`~l3d_app.geometry.tsdf.fuse_depth_maps`, free space carved by the transparent pixels),
 meshes the zero level (:func:`~l3d_app.geometry.tsdf.tsdf_mesh`) and keeps the faces some training
 camera sees (:func:`~l3d_app.render.mesh.visibility.cull_unseen_faces`, tolerance two voxels: the
@@ -29,6 +30,16 @@ from l3d_app.render.mesh.visibility import cull_unseen_faces
 from l3d_app.runtime.progress import progress
 
 SURFACE_ALPHA = 0.5     # a pixel holds a surface where its accumulated opacity passes this (the median depth's level)
+BOX_TAIL = 1e-3         # the surface's box leaves out this share of the points on each side of each axis ...
+BOX_MARGIN = 0.05       # ... and is grown by this share of its longest side (plus the truncation) for the fusion
+
+
+def surface_box(points: torch.Tensor):
+    """(lo (3,), hi (3,)) of the points (N, 3) between their ``BOX_TAIL`` and ``1 - BOX_TAIL``
+    quantiles per axis: the rendered surface's extent without the few stray splats far out."""
+    n = points.shape[0]
+    k_lo, k_hi = max(1, int(BOX_TAIL * n)), max(1, n - int(BOX_TAIL * n))
+    return points.kthvalue(k_lo, 0).values, points.kthvalue(k_hi, 0).values
 
 
 @torch.no_grad()
@@ -50,8 +61,11 @@ def fused_mesh(render: Callable[[int], Dict[str, torch.Tensor]], views: Sequence
     points = points[((points >= box[0]) & (points <= box[1])).all(-1)]
     if points.shape[0] == 0:
         return None, {"mesh_faces": 0}
-    voxel = float((points.max(0).values - points.min(0).values).max()) / int(resolution)
+    lo, hi = surface_box(points)
+    voxel = float((hi - lo).max()) / int(resolution)
     trunc = float(truncation) * voxel
+    pad = BOX_MARGIN * float((hi - lo).max()) + trunc
+    box = torch.stack([torch.maximum(lo - pad, box[0]), torch.minimum(hi + pad, box[1])])
     stats = {"mesh_voxel": round(voxel, 6), "mesh_truncation": round(trunc, 6)}
     try:
         vol = fuse_depth_maps(depth, cams, voxel, trunc, colors=color, valid=valid, box=box.tolist())
