@@ -96,7 +96,8 @@ def pixel_centres(width: int, height: int, dtype, device) -> torch.Tensor:
 def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: torch.Tensor,
                       mean2d: torch.Tensor, conic: torch.Tensor, opacity: torch.Tensor,
                       width: int, height: int, tile: int, max_elements: int = 1 << 22,
-                      rays: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+                      rays: Optional[torch.Tensor] = None, floor: Optional[torch.Tensor] = None
+                      ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Flat (pixel, splat) pairs with ``alpha >= 1/255``; each pixel's pairs are one run, by depth.
 
     Args: the output of :func:`bin_tiles`; mean2d (M, 2), conic (M, 3) ``(A, B, C)`` of
@@ -104,8 +105,8 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
         rays: surfels only (:mod:`l3d_app.render.gaussians.surfels`): (M, 9) the row-major
             3x3 matrix ``A`` taking a pixel ``(x, y, 1)`` to ``c`` with the ray-splat
             intersection ``(u, v) = (c0, c1) / c2`` (in front of the camera where ``c2 > 0``);
-            the quadratic form is then ``min(d^T conic d, u^2 + v^2)`` (``conic`` is the
-            low-pass floor).
+            the quadratic form is then ``min(d^T conic d + floor, u^2 + v^2)`` (``conic`` is the
+            low-pass floor, ``floor`` (M,) its offset, default 0).
     Returns: pix (K,) pixel index ``row * width + col``, spl (K,) splat index.
     """
     dev, dt = mean2d.device, mean2d.dtype
@@ -117,6 +118,8 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
     # several times faster than advanced indexing
     cols = [torch.cat([x.contiguous(), x.new_zeros(1)]) for x in (*mean2d.unbind(1), *conic.unbind(1), opacity)]
     ray_cols = [] if rays is None else [torch.cat([x.contiguous(), x.new_zeros(1)]) for x in rays.unbind(1)]
+    if floor is not None:
+        cols.append(torch.cat([floor.contiguous(), floor.new_zeros(1)]))
     sidp = torch.cat([sid, sid.new_full((1,), M)])
     ly, lx = torch.meshgrid(torch.arange(tile, device=dev), torch.arange(tile, device=dev), indexing="ij")
     ly, lx = ly.reshape(-1), lx.reshape(-1)
@@ -138,11 +141,12 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
                 t = tl[g0:g0 + per]
                 idx = torch.where(slot < cnt[g0:g0 + per, None], st[g0:g0 + per, None] + slot, sid.numel())
                 s = sidp.index_select(0, idx.reshape(-1))                               # (G*L,)
-                u, v, A, B, C, o = (c.index_select(0, s).reshape(-1, L) for c in cols)  # each (G, L)
+                u, v, A, B, C, o, *off = (c.index_select(0, s).reshape(-1, L) for c in cols)  # each (G, L)
                 x0, y0 = (t % ntx) * tile, torch.div(t, ntx, rounding_mode="floor") * tile
                 ox = u - (x0.to(dt) + 0.5)[:, None]                                    # splat centre, tile-local
                 oy = v - (y0.to(dt) + 0.5)[:, None]
-                coef = torch.stack([A * ox * ox + 2 * B * ox * oy + C * oy * oy, -2 * (A * ox + B * oy),
+                const = A * ox * ox + 2 * B * ox * oy + C * oy * oy
+                coef = torch.stack([const + off[0] if off else const, -2 * (A * ox + B * oy),
                                     -2 * (B * ox + C * oy), A, 2 * B, C], 1)            # (G, 6, L)
                 # alpha = o exp(-q/2) >= 1/255  <=>  q <= 2 ln(255 o)   (padding: o = 0, never)
                 thr = 2.0 * torch.log(o * 255.0)

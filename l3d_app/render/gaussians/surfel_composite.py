@@ -6,7 +6,8 @@ backward are those of :mod:`~l3d_app.render.gaussians.composite` (the same helpe
 ``k`` of pixel ``p = (x, y)`` and splat ``i`` (see :mod:`~l3d_app.render.gaussians.surfel_project`):
 
 * ``c = A_i (x, y, 1)``, ``(u, v) = (c0, c1) / c2``: the ray-splat intersection, ``q3 = u^2 + v^2``
-  (+inf when ``c2 <= 0``: behind the camera); the low-pass floor ``q2 = LOW_PASS_INV |p - m_i|^2``;
+  (+inf when ``c2 <= 0``: behind the camera); the low-pass floor ``q2 = LOW_PASS_INV |p - m_i|^2 + f_i``
+  (``f_i = -2 ln rho_i``: the floor's weight, :mod:`~l3d_app.render.gaussians.surfel_project`);
   ``q = min(q3, q2)``, ``alpha = min(0.99, o_i exp(-q / 2))`` (0 below 1/255);
 * depth ``z = depth_row_i . (u, v, 1)`` (camera z of the intersection) where ``q3 <= q2``, the
   centre's depth where the floor decides (as 2DGS);
@@ -39,9 +40,9 @@ from l3d_app.render.gaussians.surfel_project import LOW_PASS_INV
 LOG_HALF = math.log(0.5)
 
 
-def _pair_geometry(pix, spl, mean2d, rays, depth_row, opacity, width, height):
+def _pair_geometry(pix, spl, mean2d, rays, depth_row, opacity, floor, width, height):
     """Per pair: alpha (K,), depth z (K,) and what the backward needs: (u, v, c2, use3, px, py,
-    dx, dy, the splat's opacity and depth row (3 columns)). Column by column (contiguous rows)."""
+    dx, dy, the splat's opacity and depth row (2 columns)). Column by column (contiguous rows)."""
     cx, cy = pixel_centres(width, height, mean2d.dtype, mean2d.device).unbind(1)
     px, py = cx.contiguous().index_select(0, pix), cy.contiguous().index_select(0, pix)
     a = [x.contiguous().index_select(0, spl) for x in rays.unbind(1)]
@@ -50,9 +51,9 @@ def _pair_geometry(pix, spl, mean2d, rays, depth_row, opacity, width, height):
     c2s = torch.where(front, c2, torch.ones_like(c2))
     u, v = c0 / c2s, c1 / c2s
     q3 = torch.where(front, u * u + v * v, torch.full_like(u, float("inf")))
-    mu, mv, o = (x.contiguous().index_select(0, spl) for x in (*mean2d.unbind(1), opacity))
+    mu, mv, o, f = (x.contiguous().index_select(0, spl) for x in (*mean2d.unbind(1), opacity, floor))
     dx, dy = px - mu, py - mv
-    q2 = LOW_PASS_INV * (dx * dx + dy * dy)
+    q2 = LOW_PASS_INV * (dx * dx + dy * dy) + f
     use3 = q3 <= q2
     q = torch.where(use3, q3, q2)
     alpha = (torch.exp(q * -0.5) * o).clamp(max=ALPHA_MAX)
@@ -87,12 +88,12 @@ def _median_pairs(log_t: torch.Tensor, seg: torch.Tensor, last: torch.Tensor) ->
     return first + count.clamp_min(1) - 1
 
 
-def surfel_composite_pairs(pix, spl, mean2d, rays, depth_row, opacity, feats, width, height):
+def surfel_composite_pairs(pix, spl, mean2d, rays, depth_row, opacity, floor, feats, width, height):
     """Reference forward in plain autograd: (H*W, F) ``sum w f``, (H*W,) ``sum w``, ``sum w z``,
     distortion and median depth (0 where a pixel has no pair)."""
     HW = width * height
     seg, last = _segments(pix)
-    alpha, z, _ = _pair_geometry(pix, spl, mean2d, rays, depth_row, opacity, width, height)
+    alpha, z, _ = _pair_geometry(pix, spl, mean2d, rays, depth_row, opacity, floor, width, height)
     log1m = torch.log1p(-alpha)
     incl = torch.cumsum(log1m, 0)
     log_t_incl = incl - torch.cat([incl.new_zeros(1), incl[last[:-1]]])[seg]
@@ -109,15 +110,15 @@ def surfel_composite_pairs(pix, spl, mean2d, rays, depth_row, opacity, feats, wi
 
 class SurfelCompositeFunction(torch.autograd.Function):
     """forward(pix (K,), spl (K,), mean2d (M, 2), rays (M, 9), depth_row (M, 3), opacity (M,),
-    feats (M, F), width, height) -> acc (H*W, F), alpha (H*W,), depth sum (H*W,), distortion
+    floor (M,), feats (M, F), width, height) -> acc (H*W, F), alpha (H*W,), depth sum (H*W,), distortion
     (H*W,), median depth (H*W,); see the module docstring. Attribute-major per-pair work, as
     :class:`~l3d_app.render.gaussians.composite.CompositeFunction`."""
 
     @staticmethod
-    def forward(ctx, pix, spl, mean2d, rays, depth_row, opacity, feats, width, height):
+    def forward(ctx, pix, spl, mean2d, rays, depth_row, opacity, floor, feats, width, height):
         HW = width * height
         seg, last = _segments(pix)
-        alpha, z, geo = _pair_geometry(pix, spl, mean2d, rays, depth_row, opacity, width, height)
+        alpha, z, geo = _pair_geometry(pix, spl, mean2d, rays, depth_row, opacity, floor, width, height)
         log_t, keep = _transmittance(alpha, seg, last)
         if not bool(keep.all()):                 # terminated pairs carry no work (nor gradient)
             k = torch.nonzero(keep).reshape(-1)
@@ -165,7 +166,7 @@ class SurfelCompositeFunction(torch.autograd.Function):
         gc0, gc1 = g_u / c2, g_v / c2
         gc2 = -(g_u * u + g_v * v) / c2
         low = torch.where(use3, torch.zeros_like(d_q), d_q) * (-2.0 * LOW_PASS_INV)
-        out = torch.empty(15 + F, w.shape[0], dtype=w.dtype, device=w.device)
+        out = torch.empty(16 + F, w.shape[0], dtype=w.dtype, device=w.device)
         torch.mul(low, dx, out=out[0])
         torch.mul(low, dy, out=out[1])
         for k, gk in enumerate((gc0, gc1, gc2)):
@@ -176,15 +177,16 @@ class SurfelCompositeFunction(torch.autograd.Function):
         torch.mul(g_z, v, out=out[12])
         out[13] = g_z
         torch.div(-2.0 * d_q, o, out=out[14])                                             # d alpha / d o = alpha / o
-        torch.mul(G[:F], w, out=out[15:])
-        g_splat = torch.zeros(15 + F, ctx.n_splats, dtype=out.dtype, device=out.device).index_add_(1, spl, out)
-        return (None, None, g_splat[:2].t(), g_splat[2:11].t(), g_splat[11:14].t(), g_splat[14], g_splat[15:].t(),
-                None, None)
+        torch.where(use3, torch.zeros_like(d_q), d_q, out=out[15])                        # d q / d floor = 1
+        torch.mul(G[:F], w, out=out[16:])
+        g_splat = torch.zeros(16 + F, ctx.n_splats, dtype=out.dtype, device=out.device).index_add_(1, spl, out)
+        return (None, None, g_splat[:2].t(), g_splat[2:11].t(), g_splat[11:14].t(), g_splat[14], g_splat[15],
+                g_splat[16:].t(), None, None)
 
 
-def composite_surfels(pix: torch.Tensor, spl: torch.Tensor, mean2d, rays, depth_row, opacity, feats, width: int,
-                      height: int, custom_backward: bool = True) -> Tuple[torch.Tensor, ...]:
+def composite_surfels(pix: torch.Tensor, spl: torch.Tensor, mean2d, rays, depth_row, opacity, floor, feats,
+                      width: int, height: int, custom_backward: bool = True) -> Tuple[torch.Tensor, ...]:
     """:class:`SurfelCompositeFunction` (``custom_backward``) or its autograd reference."""
     if custom_backward:
-        return SurfelCompositeFunction.apply(pix, spl, mean2d, rays, depth_row, opacity, feats, width, height)
-    return surfel_composite_pairs(pix, spl, mean2d, rays, depth_row, opacity, feats, width, height)
+        return SurfelCompositeFunction.apply(pix, spl, mean2d, rays, depth_row, opacity, floor, feats, width, height)
+    return surfel_composite_pairs(pix, spl, mean2d, rays, depth_row, opacity, floor, feats, width, height)

@@ -77,14 +77,14 @@ def rasterize_surfels(means: torch.Tensor, log_scales: torch.Tensor, quats: torc
         d = means - centres[b]
         d = d * torch.rsqrt((d * d).sum(-1, keepdim=True).clamp_min(1e-24))
         rgb = sh_to_color(sh_degree, sh_coeffs, d)
-        m2, rays, row = means2d[b], proj["rays"][b], proj["depth_row"][b]
+        m2, rays, row, floor = means2d[b], proj["rays"][b], proj["depth_row"][b], proj["floor"][b]
         with torch.no_grad():
             sid, t_start, t_count = bin_tiles(proj["box_centre"][b], proj["extent"][b], proj["depth"][b], W, H,
                                               tile_size)
             pix, spl = splat_pixel_pairs(sid, t_start, t_count, m2, low_pass, opacity, W, H, tile_size, max_elements,
-                                         rays=rays)
+                                         rays=rays, floor=floor)
         feats = torch.cat([rgb, proj["normals"][b]], -1)
-        acc, a, depth, dist, median = composite_surfels(pix, spl, m2, rays, row, opacity, feats, W, H,
+        acc, a, depth, dist, median = composite_surfels(pix, spl, m2, rays, row, opacity, floor, feats, W, H,
                                                         custom_backward=custom_backward)
         acc, a = acc.reshape(H, W, 6), a.reshape(H, W)
         outs.append((acc[..., :3] + (1.0 - a)[..., None] * bg, a, depth.reshape(H, W), median.reshape(H, W),
