@@ -35,6 +35,7 @@ from l3d_app.runtime.media import save_gif, to_uint8
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import (background_parameter, require_mesh_formats, require_nonnegative,
                                   require_positive)
+from l3d_app.tasks.viewer_common import finish_viewer, gaussian_view, start_viewer
 
 
 def _check(cfg) -> None:
@@ -73,6 +74,8 @@ def surfels(cfg, ctx) -> dict:
     trainable = Trainable({"gaussians": model, "background": background}, opt, schedulers=[sched],
                           extra={"strategy": strategy, "progress_frames": prog_frames, "step_times": steps.step_times})
     dist, normal = cfg.distortion, cfg.normal
+    live = start_viewer(cfg, ctx, data, *gaussian_view(model, background["rgb"], steps.degree, int(cfg.tile_size),
+                                                       rasterize=rasterize_surfels))
 
     def render(i: int, deg: int):
         return rasterize_surfels(model.means, model.log_scales, model.quats, model.opacity_logits, model.sh, deg,
@@ -115,6 +118,7 @@ def surfels(cfg, ctx) -> dict:
                        checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="surfels",
                        after_step=after_step, log_every=int(cfg.log_every), time_budget=budget, reserve=reserve,
                        reserve_evals=(len(data.test) + len(data.train)) / len(data.val))
+    finish_viewer(live, ctx, result.step)
     deg = steps.degree(result.step)
     with torch.no_grad():
         pred, target, panel, test = evaluate(data.test, deg)
