@@ -10,7 +10,7 @@ over that box grown by 5% and the truncation, fuses depth and colour
 (:func:`~l3d_app.geometry.tsdf.fuse_depth_maps`, free space carved by the transparent pixels),
 meshes the zero level (:func:`~l3d_app.geometry.tsdf.tsdf_mesh`) and keeps the faces some training
 camera sees (:func:`~l3d_app.render.mesh.visibility.cull_unseen_faces`, tolerance two voxels: the
-grid's own precision). :func:`truth_scores` scores a mesh as volsdf's is scored.
+grid's own precision; depth maps at twice the cameras' resolution, a quarter of the cost of four times). :func:`truth_scores` scores a mesh as volsdf's is scored.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ from l3d_app.runtime.progress import progress
 SURFACE_ALPHA = 0.5     # a pixel holds a surface where its accumulated opacity passes this (the median depth's level)
 BOX_TAIL = 1e-3         # the surface's box leaves out this share of the points on each side of each axis ...
 BOX_MARGIN = 0.05       # ... and is grown by this share of its longest side (plus the truncation) for the fusion
+CULL_SCALE = 2          # the culling's depth maps at this many times the cameras' resolution (volsdf's: 4)
 
 
 def surface_box(points: torch.Tensor):
@@ -73,7 +74,7 @@ def fused_mesh(render: Callable[[int], Dict[str, torch.Tensor]], views: Sequence
     except UserError:
         return None, {**stats, "mesh_faces": 0}
     if cull:
-        mesh, stats["mesh_culled_area"] = cull_unseen_faces(mesh, cams, 2.0 * voxel)
+        mesh, stats["mesh_culled_area"] = cull_unseen_faces(mesh, cams, 2.0 * voxel, scale=CULL_SCALE)
     stats["mesh_faces"] = int(mesh.num_faces)
     return mesh, stats
 
