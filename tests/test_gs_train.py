@@ -196,9 +196,9 @@ def test_gs_train_refine_compresses_the_lr_and_ends_growth_by_the_steps_that_fit
     import time as real_time
     import types
 
-    from l3d_app.tasks import gs_train as gs_task
+    from l3d_app.pipelines import splats as step_clock          # gs_train's steps are timed there
     ticks = iter(range(10 ** 6))
-    monkeypatch.setattr(gs_task, "time", types.SimpleNamespace(perf_counter=lambda: float(next(ticks)),
+    monkeypatch.setattr(step_clock, "time", types.SimpleNamespace(perf_counter=lambda: float(next(ticks)),
                                                                 process_time=real_time.process_time))
     monkeypatch.setenv("L3D_STOP_AT_STEP", "3")
     with pytest.raises(RunInterrupted):

@@ -30,7 +30,8 @@ from l3d_app.metrics.image import psnr, ssim
 from l3d_app.models.gaussians import GaussianModel, colors_from_views, init_from_points
 from l3d_app.render.gaussians.coverage import shrink_to_coverage
 from l3d_app.render.gaussians.panels import colorize_depth, error_map, side_by_side
-from l3d_app.runtime.lr_schedules import exponential
+from l3d_app.runtime.horizon import Horizon
+from l3d_app.runtime.lr_schedules import exponential, on_horizon
 from l3d_app.runtime.random import rand, randint, randn
 
 SURFEL_THICKNESS = 1e-3     # a surfel's third scale over its first (the disk's thickness for the strategies)
@@ -39,9 +40,10 @@ INIT_COLORS = ("views", "points", "grey")
 
 def initial_splats(raw, data, generator: Optional[torch.Generator], n_init: int, init_colors: str = "views",
                    opacity: float = 0.1, isotropic: bool = False, scale_factor: float = 1.0,
-                   max_coverage: float = 0.0, surfels: bool = False) -> GaussianModel:
+                   max_coverage: float = 0.0, surfels: bool = False, data_name: str = "") -> GaussianModel:
     """The starting splats of a multi-view dataset (``raw``: as loaded, ``data``: on the run's
-    device); see the module docstring. ``init_colors``: views | points | grey."""
+    device); see the module docstring. ``init_colors``: views | points | grey (``data_name`` for
+    the message when the data has no point colours)."""
     points, colors = getattr(raw, "points", None), None
     if points is None:
         lo, hi = data.scene_box[0].cpu(), data.scene_box[1].cpu()
@@ -53,7 +55,7 @@ def initial_splats(raw, data, generator: Optional[torch.Generator], n_init: int,
     elif mode == "points":
         colors = getattr(raw, "point_colors", None)
         if colors is None:
-            raise UserError("init_colors=points: the data has no point colours (use views or grey)")
+            raise UserError(f"init_colors=points: data '{data_name}' has no point colours (use views or grey)")
     elif mode != "grey":
         raise UserError(f"init_colors must be one of {', '.join(INIT_COLORS)}, got {mode!r}")
     model = init_from_points(points, colors, opacity=float(opacity), isotropic=bool(isotropic) and not surfels,
@@ -77,12 +79,12 @@ def scene_extent(cams, margin: float) -> float:
 
 
 def splat_optimizer(model: GaussianModel, background: torch.nn.ParameterDict, lr: Mapping[str, float],
-                    extent: float, adam_eps: float, lr_decay_steps: int
+                    extent: float, adam_eps: float, lr_decay_steps: int, horizon: Optional[Horizon] = None
                     ) -> Tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
     """Adam over the splats' parameter groups (named as the strategies expect: ``means`` first, at
     ``lr.means`` x ``extent`` decayed to ``lr.means_final`` over ``lr_decay_steps``; ``scales``,
     ``quats``, ``opacity``, ``sh_dc``, ``sh_rest``; ``background`` when it is learnt) and the
-    LambdaLR of the decay."""
+    LambdaLR of the decay (read on ``horizon``'s nominal steps when given)."""
     groups = [("means", model.means, float(lr["means"]) * extent), ("scales", model.log_scales, float(lr["scales"])),
               ("quats", model.quats, float(lr["quats"])), ("opacity", model.opacity_logits, float(lr["opacity"])),
               ("sh_dc", model.sh_dc, float(lr["sh_dc"])), ("sh_rest", model.sh_rest, float(lr["sh_rest"]))]
@@ -92,6 +94,7 @@ def splat_optimizer(model: GaussianModel, background: torch.nn.ParameterDict, lr
     opt = torch.optim.Adam([{"params": [p], "lr": r, "name": n} for n, p, r in groups], eps=float(adam_eps),
                            fused=True)
     decay = exponential(float(lr["means_final"]) / float(lr["means"]), int(lr_decay_steps))
+    decay = decay if horizon is None else on_horizon(decay, horizon)
     return opt, torch.optim.lr_scheduler.LambdaLR(opt, [decay] + [lambda s: 1.0] * (len(groups) - 1))
 
 
@@ -99,23 +102,27 @@ class SplatSteps:
     """The per-step work both splat tasks share (see the module docstring).
 
     Args: model, optimiser, strategy (built, initialised); train_views (T,) indices; images
-        (V, H, W, 3); generator; ssim_lambda; sh_degree, sh_every; log: ``log(scalars, step)``.
+        (V, H, W, 3); generator; ssim_lambda; sh_degree, sh_every; horizon: the schedules' nominal
+        steps (None: by step).
+    ``info`` is the strategy's bookkeeping (a task may add ``schedule``, ``until_scale``);
     ``step_times`` (wall, CPU seconds per step) is a list a task may checkpoint.
     """
 
     def __init__(self, model, optimizer, strategy, train_views: torch.Tensor, images: torch.Tensor,
                  generator: Optional[torch.Generator], ssim_lambda: float, sh_degree: int, sh_every: int,
-                 log: Callable[[Dict[str, float], int], None]):
+                 horizon: Optional[Horizon] = None):
         self.model, self.opt, self.strategy = model, optimizer, strategy
         self.train_views, self.images, self.generator = train_views, images, generator
-        self.ssim_lambda, self.sh_degree, self.sh_every, self.log = float(ssim_lambda), int(sh_degree), int(sh_every), log
+        self.ssim_lambda, self.sh_degree, self.sh_every = float(ssim_lambda), int(sh_degree), int(sh_every)
+        self.horizon = horizon
         H, W = images.shape[1:3]
         self.info: Dict[str, object] = {"width": W, "height": H}
         self.step_times: List[Tuple[float, float]] = []
 
     def degree(self, step: int) -> int:
-        """The SH degree at ``step``: one more every ``sh_every`` steps up to ``sh_degree``."""
-        return min(self.sh_degree, step // self.sh_every)
+        """The SH degree at ``step``: one more every ``sh_every`` (nominal) steps up to ``sh_degree``."""
+        nominal = step if self.horizon is None else int(self.horizon.nominal(step))
+        return min(self.sh_degree, nominal // self.sh_every)
 
     def begin(self) -> int:
         """Start timing a step; returns the training view it renders (drawn at random)."""
@@ -136,18 +143,23 @@ class SplatSteps:
         self.strategy.step_pre_backward(self.model, self.opt, step, self.info)
         return loss if reg is None else loss + reg
 
-    def after_step(self, step: int, steps_left: int) -> None:
-        """After the optimiser step: the strategy's densification (``steps_left``: steps the run still
-        takes, so that it skips work the run would not profit from), its logs, the step's seconds."""
-        self.info["steps_left"] = int(steps_left)
-        logs = self.strategy.step_post_backward(self.model, self.opt, step, self.info, self.generator)
-        if logs:
-            self.log({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
-        self.step_times.append((time.perf_counter() - self.info["t0"], time.process_time() - self.info["c0"]))
+    def steps_left(self, step: int, iters: int, seconds_left: Optional[float] = None) -> int:
+        """Steps after ``step`` to ``iters``, or fewer where ``seconds_left`` (the budget's, None: no
+        budget) ends the run sooner at the mean wall seconds of the latest 50 steps."""
+        left = int(iters) - (step + 1)
+        recent = [t for t, _ in self.step_times[-50:]]
+        if seconds_left is not None and recent:
+            left = min(left, int(seconds_left * len(recent) / max(sum(recent), 1e-9)))
+        return left
 
-    def recent_seconds(self, n: int = 50) -> List[float]:
-        """Wall seconds of the latest ``n`` steps."""
-        return [t for t, _ in self.step_times[-n:]]
+    def after_step(self, step: int, steps_left: int) -> Dict[str, float]:
+        """After the optimiser step: the strategy's densification (``steps_left``: steps the run still
+        takes, so that it skips work the run would not profit from); records the step's seconds and
+        returns the strategy's figures to log."""
+        self.info["steps_left"] = steps_left
+        logs = self.strategy.step_post_backward(self.model, self.opt, step, self.info, self.generator)
+        self.step_times.append((time.perf_counter() - self.info["t0"], time.process_time() - self.info["c0"]))
+        return logs
 
     def step_cost(self, first: int = 100) -> Dict[str, float]:
         """Mean wall and CPU (process) seconds per step over the first ``first`` steps and the rest."""

@@ -31,51 +31,21 @@ Outputs: ``test_views.gif``, ``progress.gif`` (a validation view over training),
 
 from __future__ import annotations
 
-import time
 from typing import List
 
 import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.gaussian_ply import save_gaussian_ply
-from l3d_app.metrics.image import psnr, ssim
-from l3d_app.models.gaussians import colors_from_views, init_from_points
+from l3d_app.pipelines.splats import SplatSteps, evaluate_views, initial_splats, scene_extent, splat_optimizer
 from l3d_app.registry import DATASETS, STRATEGIES, TASKS
 from l3d_app.render.gaussians.rasterize import rasterize_gaussians
-from l3d_app.render.gaussians.coverage import shrink_to_coverage
-from l3d_app.render.gaussians.panels import colorize_depth, depth_range, error_map, side_by_side
+from l3d_app.render.gaussians.panels import depth_range
 from l3d_app.runtime.horizon import Horizon
-from l3d_app.runtime.lr_schedules import exponential, on_horizon
 from l3d_app.runtime.media import save_gif, to_uint8
-from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
 from l3d_app.tasks.common import background_parameter, require_positive
 from l3d_app.tasks.viewer_common import finish_viewer, gaussian_view, start_viewer
-
-
-def _initial_model(cfg, raw, data, generator):
-    points, colors = getattr(raw, "points", None), None
-    if points is None:
-        lo, hi = data.scene_box[0].cpu(), data.scene_box[1].cpu()
-        points = lo + (hi - lo) * rand((int(cfg.n_init), 3), generator)
-    points = points.float().to(data.images.device)
-    mode = str(cfg.init_colors)
-    if mode == "views":
-        colors = colors_from_views(points, data.images[data.train], data.cameras[data.train])
-    elif mode == "points":
-        colors = getattr(raw, "point_colors", None)
-        if colors is None:
-            raise UserError(f"init_colors=points: data '{cfg.data.name}' has no point colours (use views or grey)")
-    elif mode != "grey":
-        raise UserError(f"init_colors must be views, points or grey, got {mode!r}")
-    model = init_from_points(points, colors, opacity=float(cfg.init_opacity), isotropic=bool(cfg.isotropic),
-                             scale_factor=float(cfg.init_scale)).to(points.device)
-    if float(cfg.init_max_coverage) > 0:          # bounded start-up cost (render/gaussians/coverage.py)
-        views = data.train[torch.linspace(0, len(data.train) - 1, min(16, len(data.train))).long()]
-        model.log_scales.data = shrink_to_coverage(model.means, model.log_scales, model.quats,
-                                                   torch.sigmoid(model.opacity_logits), data.cameras[views],
-                                                   float(cfg.init_max_coverage))
-    return model
 
 
 SCHEDULES = ("steps", "budget", "refine")
@@ -93,37 +63,24 @@ def gs_train(cfg, ctx) -> dict:
     if len(raw.val) == 0:
         raise UserError(f"gs_train needs validation views and data '{cfg.data.name}' has none")
     data = raw.to(ctx.device)
-    model = _initial_model(cfg, raw, data, ctx.generator).to(ctx.device)
-    centres = data.cameras[data.train].centers()       # the training cameras only (3DGS): no test pose shapes training
-    extent = float(cfg.extent_margin) * float((centres - centres.mean(0)).norm(dim=-1).max())
-    lr = cfg.lr
-    groups = [("means", model.means, float(lr.means) * extent), ("scales", model.log_scales, float(lr.scales)),
-              ("quats", model.quats, float(lr.quats)), ("opacity", model.opacity_logits, float(lr.opacity)),
-              ("sh_dc", model.sh_dc, float(lr.sh_dc)), ("sh_rest", model.sh_rest, float(lr.sh_rest))]
+    model = initial_splats(raw, data, ctx.generator, int(cfg.n_init), str(cfg.init_colors), float(cfg.init_opacity),
+                           bool(cfg.isotropic), float(cfg.init_scale), float(cfg.init_max_coverage),
+                           data_name=str(cfg.data.name)).to(ctx.device)
+    extent = scene_extent(data.cameras[data.train], float(cfg.extent_margin))   # training cameras only (3DGS)
     background = background_parameter(cfg.learn_background, data)  # learnt for real captures
-    if background["rgb"].requires_grad:
-        groups.append(("background", background["rgb"], float(lr.background)))
-    # fused: one vectorised pass per parameter for the whole update (the same rule; it rounds
-    # differently in the last bit): 4.9-5.1 ms against foreach's 11.6-12.1 ms at 63 609 Gaussians
-    # on 2 CPU cores (foreach was no faster than the single-tensor loop there)
-    opt = torch.optim.Adam([{"params": [p], "lr": r, "name": n} for n, p, r in groups], eps=float(cfg.adam_eps),
-                           fused=True)
     on_budget, refine = cfg.schedule == "budget", cfg.schedule == "refine"
     horizon = Horizon(int(cfg.iters))     # budget / refine: the loop predicts the budget's stop, the schedules end there
-    decay = exponential(float(lr.means_final) / float(lr.means), int(cfg.lr_decay_steps))
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, [on_horizon(decay, horizon)] + [lambda s: 1.0] * (len(groups) - 1))
+    opt, sched = splat_optimizer(model, background, cfg.lr, extent, float(cfg.adam_eps), int(cfg.lr_decay_steps),
+                                 horizon=horizon)
     strategy = STRATEGIES.build(cfg.strategy)
     strategy.initialize(model, opt, extent)
+    steps = SplatSteps(model, opt, strategy, data.train, data.images, ctx.generator, float(cfg.ssim_lambda),
+                       int(cfg.sh_degree), int(cfg.sh_every), horizon=horizon)
     prog_frames: List[torch.Tensor] = []     # uint8 (H, W, 3) validation panels: checkpointed, so a resumed gif is whole
-    trainable = Trainable({"gaussians": model, "background": background}, opt,
-                          extra={"strategy": strategy, "horizon": horizon, "progress_frames": prog_frames},
-                          schedulers=[sched])
-    H, W = data.image_size
-    tr, lam, info, step_times = data.train, float(cfg.ssim_lambda), {"width": W, "height": H}, []
-    trainable.extra["step_times"] = step_times      # checkpointed: the step costs cover the resumed parts of a run
-
-    def degree(step: int) -> int:
-        return min(int(cfg.sh_degree), int(horizon.nominal(step)) // int(cfg.sh_every))
+    trainable = Trainable({"gaussians": model, "background": background}, opt, schedulers=[sched],
+                          extra={"strategy": strategy, "horizon": horizon, "progress_frames": prog_frames,
+                                 "step_times": steps.step_times})    # step costs cover the resumed parts of a run
+    info, degree = steps.info, steps.degree
 
     def render(i: int, deg: int):
         return rasterize_gaussians(model.means, model.log_scales3, model.quats, model.opacity_logits, model.sh,
@@ -132,17 +89,10 @@ def gs_train(cfg, ctx) -> dict:
     live = start_viewer(cfg, ctx, data, *gaussian_view(model, background["rgb"], degree, int(cfg.tile_size)))
 
     def step_fn(step: int):
-        info["t0"], info["c0"] = time.perf_counter(), time.process_time()
-        i = int(tr[int(randint(0, len(tr), (1,), ctx.generator))])
+        i = steps.begin()
         out = render(i, degree(step))
-        pred, target = out["color"][0], data.images[i]
-        l1 = (pred - target).abs().mean()
-        loss = l1 + lam * (1 - ssim(pred, target)) if lam > 0 else l1
-        reg = strategy.regularization(model)
-        loss = loss if reg is None else loss + reg
-        info.update(means2d=out["means2d"], radii=out["radii"])
-        strategy.step_pre_backward(model, opt, step, info)
-        return {"loss": loss, "l1": l1.detach(), "n_gaussians": torch.tensor(float(model.num))}
+        loss, l1 = steps.photometric(out["color"][0], i)
+        return {"loss": steps.finish(loss, out, step), "l1": l1.detach(), "n_gaussians": torch.tensor(float(model.num))}
 
     def steps_left(step: int) -> float:
         """Steps after this one on the strategy's schedule: by step, to ``iters`` or fewer where the
@@ -150,22 +100,18 @@ def gs_train(cfg, ctx) -> dict:
         horizon, the nominal steps to ``iters``. The strategy skips an opacity reset near the end."""
         if on_budget:
             return int(cfg.iters) - info["schedule"][1]
-        left = int(cfg.iters) - (step + 1)
-        if float(cfg.time_budget) > 0 and step_times:
-            recent = [t for t, _ in step_times[-50:]]
-            seconds = float(cfg.time_budget) - float(cfg.reserve) - ctx.stopwatch.elapsed
-            left = min(left, int(seconds * len(recent) / max(sum(recent), 1e-9)))
-        return left
+        seconds = float(cfg.time_budget) - float(cfg.reserve) - ctx.stopwatch.elapsed
+        return steps.steps_left(step, int(cfg.iters), seconds if float(cfg.time_budget) > 0 else None)
 
     def after_step(step: int) -> None:
         if refine:       # events by step; the growth phase ends in proportion to the steps that fit
             info["schedule"] = (step, step + 1)
-            info["steps_left"] = steps_left(step)     # at the recent seconds per step: the splats only grow
-            info["until_scale"] = min(1.0, (step + 1 + info["steps_left"]) / int(cfg.iters))
+            left = steps_left(step)     # at the recent seconds per step: the splats only grow
+            info["until_scale"] = min(1.0, (step + 1 + left) / int(cfg.iters))
         else:
             info["schedule"] = horizon.advance(step + 1)      # the strategy's steps on the same schedule
-            info["steps_left"] = steps_left(step)
-        logs = strategy.step_post_backward(model, opt, step, info, ctx.generator)
+            left = steps_left(step)
+        logs = steps.after_step(step, left)
         if on_budget and step % int(cfg.log_every) == 0:   # how far the compressed schedule has come
             logs = {**logs, "nominal_step": info["schedule"][1], "predicted_steps": horizon.steps}
         elif refine and step % int(cfg.log_every) == 0:  # where the growth phase ends, the LR's nominal step
@@ -174,17 +120,11 @@ def gs_train(cfg, ctx) -> dict:
                 logs["until"] = strategy.phase_end(float(strategy.until), info)
         if logs:
             ctx.logger.log_scalars({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
-        step_times.append((time.perf_counter() - info["t0"], time.process_time() - info["c0"]))
 
     lo_hi = depth_range(data.cameras[int(data.val[0])].centers()[0], data.scene_box)
 
     def evaluate(views, deg):
-        outs = [render(int(i), deg) for i in views]
-        pred = torch.cat([o["color"] for o in outs]).clamp(0, 1)
-        target = data.images[views.to(ctx.device)]
-        depth = colorize_depth(outs[0]["expected_depth"][0], *lo_hi, mask=outs[0]["alpha"][0] > 0.5)
-        panel = side_by_side([pred[0], target[0], error_map(pred[0], target[0]), depth])
-        return pred, target, panel, {"psnr": float(psnr(pred, target)), "ssim": float(ssim(pred, target))}
+        return evaluate_views(lambda i: render(i, deg), views, data.images, lo_hi)
 
     def eval_fn(step: int):
         pred, _, panel, m = evaluate(data.val, degree(step))
@@ -208,14 +148,5 @@ def gs_train(cfg, ctx) -> dict:
     save_gaussian_ply(ctx.path("point_cloud.ply"), **model.tensors())
     return {**test, **result.val_metrics(), **result.timing(), "n_gaussians": model.num,
             "background": [round(float(c), 4) for c in background["rgb"].detach().clamp(0, 1)],
-            **_step_cost(step_times), "history": result.history_rows()}
+            **steps.step_cost(), "history": result.history_rows()}
 
-
-def _step_cost(times, first: int = 100) -> dict:
-    """Mean wall and CPU (process) seconds per step over the first ``first`` steps and the rest
-    (CPU time is the figure to compare on a shared machine, with threads=1)."""
-    out = {}
-    for name, part in (("first_100", times[:first]), ("after_100", times[first:])):
-        out[f"seconds_per_step_{name}"] = round(sum(t[0] for t in part) / max(1, len(part)), 5)
-        out[f"cpu_seconds_per_step_{name}"] = round(sum(t[1] for t in part) / max(1, len(part)), 5)
-    return out

@@ -62,14 +62,15 @@ def surfels(cfg, ctx) -> dict:
         raise UserError(f"surfels needs validation views and data '{cfg.data.name}' has none")
     data = raw.to(ctx.device)
     model = initial_splats(raw, data, ctx.generator, int(cfg.n_init), str(cfg.init_colors), float(cfg.init_opacity),
-                           False, float(cfg.init_scale), float(cfg.init_max_coverage), surfels=True).to(ctx.device)
+                           False, float(cfg.init_scale), float(cfg.init_max_coverage), surfels=True,
+                           data_name=str(cfg.data.name)).to(ctx.device)
     extent = scene_extent(data.cameras[data.train], float(cfg.extent_margin))
     background = background_parameter(cfg.learn_background, data)
     opt, sched = splat_optimizer(model, background, cfg.lr, extent, float(cfg.adam_eps), int(cfg.lr_decay_steps))
     strategy = STRATEGIES.build(cfg.strategy)
     strategy.initialize(model, opt, extent)
     steps = SplatSteps(model, opt, strategy, data.train, data.images, ctx.generator, float(cfg.ssim_lambda),
-                       int(cfg.sh_degree), int(cfg.sh_every), ctx.logger.log_scalars)
+                       int(cfg.sh_degree), int(cfg.sh_every))
     prog_frames: List[torch.Tensor] = []
     trainable = Trainable({"gaussians": model, "background": background}, opt, schedulers=[sched],
                           extra={"strategy": strategy, "progress_frames": prog_frames, "step_times": steps.step_times})
@@ -97,11 +98,10 @@ def surfels(cfg, ctx) -> dict:
     budget, reserve = float(cfg.time_budget), float(cfg.reserve) + float(cfg.mesh_reserve)
 
     def after_step(step: int) -> None:
-        left = int(cfg.iters) - (step + 1)
-        recent = steps.recent_seconds()
-        if budget > 0 and recent:         # at the recent seconds per step, where the budget ends the run sooner
-            left = min(left, int((budget - reserve - ctx.stopwatch.elapsed) * len(recent) / max(sum(recent), 1e-9)))
-        steps.after_step(step, left)
+        left = steps.steps_left(step, int(cfg.iters), budget - reserve - ctx.stopwatch.elapsed if budget > 0 else None)
+        logs = steps.after_step(step, left)
+        if logs:
+            ctx.logger.log_scalars({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
 
     lo_hi = depth_range(data.cameras[int(data.val[0])].centers()[0], data.scene_box)
 
