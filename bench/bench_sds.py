@@ -6,7 +6,7 @@
 Each (space, guidance scale, prompt, seed) runs ``task=sds_image`` through the app (in this
 process, one Hydra compose per run, no TensorBoard) and the independent checker scores the
 final image. Prompts: fully specified ones ("a red circle on white"), balanced over shapes,
-colours and backgrounds (``l3d_app.tasks.prior_common.full_prompts``). Reported per
+colours and backgrounds (``l3d_app.prompt_vocab.full_prompts``). Reported per
 (space, scale): match rate, colour / shape / background accuracy, the match rate per asked
 shape, mean seconds per run and the machine's load average.
 Writes ``outputs/bench_sds/results.json`` and ``results.md``.
@@ -48,7 +48,7 @@ def main() -> None:
     ap.add_argument("--out", default=str(REPO / "outputs" / "bench_sds"))
     args = ap.parse_args()
     os.environ.setdefault("L3D_NO_PROGRESS", "1")
-    from l3d_app.tasks.prior_common import full_prompts
+    from l3d_app.prompt_vocab import full_prompts
     prompts = full_prompts(max(1, args.prompts // 3))
     out = Path(args.out)
     rows = []

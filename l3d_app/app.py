@@ -24,6 +24,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from l3d_app.command_line import check_command_line_types, require_run_keys
 from l3d_app.errors import UserError
 from l3d_app.registry import TASKS
 from l3d_app.runtime.context import RunContext
@@ -32,8 +33,6 @@ from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.precision import check_precision
 from l3d_app.runtime.seed import seed_everything
 from l3d_app.sweep_jobs import record_failed_job, refused_objective, remember_refused_objective, sweep_job_label
-from l3d_app.tasks.common import require_run_keys
-from l3d_app.tasks.override_common import check_command_line_types
 
 
 def run(cfg: DictConfig, out_dir: Optional[Path] = None) -> Optional[float]:

@@ -11,7 +11,7 @@ in [0, 1]; :data:`ANY` (-1) marks a slot a prompt leaves unnamed.
 from __future__ import annotations
 
 import re
-from typing import Tuple
+from typing import List, Tuple
 
 from l3d_app.errors import UserError
 
@@ -66,3 +66,18 @@ def prompt_text(colour: int, shape: int, background: int) -> str:
     if background != ANY:
         words += ["on", BACKGROUND_NAMES[background]]
     return " ".join(words)
+
+
+def full_prompts(n_per_shape: int = 0) -> List[str]:
+    """Fully specified prompts: every (colour, shape, background) triple (54), or with
+    ``n_per_shape`` > 0 a fixed, balanced subset cycling colours and backgrounds per shape."""
+    triples = [(c, s, b) for s in SHAPES for c in COLOUR_NAMES for b in BACKGROUND_NAMES]
+    if n_per_shape <= 0:
+        return [f"a {c} {s} on {b}" for c, s, b in triples]
+    out = []
+    for s in SHAPES:
+        for i in range(n_per_shape):
+            c = COLOUR_NAMES[i % len(COLOUR_NAMES)]
+            b = BACKGROUND_NAMES[(i + SHAPES.index(s)) % len(BACKGROUND_NAMES)]
+            out.append(f"a {c} {s} on {b}")
+    return out

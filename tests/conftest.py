@@ -46,6 +46,13 @@ def compose():
     return _compose
 
 
+@pytest.fixture(scope="session")
+def data_cache(tmp_path_factory):
+    """One cache folder for the session's built-in datasets (each file keyed by the dataset's
+    parameters): a scene is rendered once for every test that asks for the same one."""
+    return tmp_path_factory.mktemp("data_cache")
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_setup(item):
     """Seed torch's global generator from the test's node id (order-independent), before any

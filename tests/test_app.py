@@ -8,6 +8,7 @@ import sys
 import imageio.v2 as imageio
 import pytest
 
+from cli_batch import run_batch
 from conftest import REPO
 from l3d_app.app import run_task
 from l3d_app.errors import UserError
@@ -139,62 +140,83 @@ def test_cli_sweep_of_only_bad_jobs_leaves_nothing(tmp_path):
     assert "Traceback" not in out.stderr and not (tmp_path / "sweep").exists()
 
 
-@pytest.mark.parametrize("args, needle", [
+BAD_INPUT = [
     (["task=nope"], "task"),
     (["image_sise=64"], "image_sise"),
     (["data=mesh"], "data.path"),
     (["data=mesh", "data.path=/no/such/mesh.obj"], "not found"),
     (["data=builtin", "data.scene=teapot"], "teapot"),
-    # a value of the wrong type for its default: refused before anything runs (runtime/config_types)
+    # a value of the wrong type for its default: refused before anything runs (command_line.py)
     (["task=fit_point", "iters=2.5"], "iters must be an integer, got 2.5"),
     (["elevation=abc"], "elevation must be a number, got 'abc'"),
     (["tensorboard=no"], "tensorboard must be true or false, got 'no'"),
     (["renderer.antialias=1.5"], "renderer.antialias must be an integer, got 1.5"),    # a key of a config group
-])
-def test_cli_bad_input_is_one_clear_line(tmp_path, args, needle):
-    out = main_py(*args, "num_frames=2", "image_size=16", f"hydra.run.dir={tmp_path / 'run'}")
-    assert out.returncode == 2, out.stderr
-    assert needle in out.stderr
-    assert len(out.stderr.strip().splitlines()) == 1, out.stderr
-    assert "Traceback" not in out.stderr
-    assert not (tmp_path / "run").exists()      # no run directory left behind: nothing was written
-
-
-@pytest.mark.parametrize("args, needle", [
+]
+CONFIG_ERRORS = [
     (["task=gs_train", "gif_frames=0"], "gif_frames"),            # a key this task does not have
     (["image_size==3"], "image_size==3"),                          # a malformed override
     (["-m", "task=render360", "image_sise=16,24"], "image_sise"),  # a typo in a sweep
-])
-def test_cli_config_errors_are_one_line_exit_2(tmp_path, args, needle):
+]
+
+
+@pytest.fixture(scope="module")
+def cli_errors(tmp_path_factory):
+    """Every bad command line below, run as ``python main.py ...`` in one interpreter (tests/cli_batch.py):
+    case name -> (its run / sweep folder, {"returncode", "stderr"})."""
+    root = tmp_path_factory.mktemp("cli")
+    bad = root / "bad.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nf 1 2 7\n")
+    (root / "taken").write_text("not a folder")
+    cases = {f"bad{i}": [*args, "num_frames=2", "image_size=16"] for i, (args, _) in enumerate(BAD_INPUT)}
+    cases.update({f"config{i}": list(args) for i, (args, _) in enumerate(CONFIG_ERRORS)})
+    cases.update({"malformed_obj": ["data=mesh", f"data.path={bad}", "num_frames=2", "image_size=16"],
+                  "run_dir_is_a_file": ["num_frames=2", "image_size=16", f"hydra.run.dir={root / 'taken'}"],
+                  "flag_conflict": ["-m", "task=render360", "--cfg", "job"]})
+    folders = {name: root / name for name in cases}
+    argv = [args if name in ("run_dir_is_a_file", "flag_conflict") else
+            [*args, f"hydra.run.dir={folders[name] / 'run'}", f"hydra.sweep.dir={folders[name] / 'sweep'}"]
+            for name, args in cases.items()]
+    results = run_batch(argv, root / "batch")
+    return root, {name: (folders[name], res) for name, res in zip(cases, results)}
+
+
+@pytest.mark.parametrize("case", range(len(BAD_INPUT)))
+def test_cli_bad_input_is_one_clear_line(cli_errors, case):
+    folder, out = cli_errors[1][f"bad{case}"]
+    assert out["returncode"] == 2, out["stderr"]
+    assert BAD_INPUT[case][1] in out["stderr"]
+    assert len(out["stderr"].strip().splitlines()) == 1, out["stderr"]
+    assert "Traceback" not in out["stderr"]
+    assert not (folder / "run").exists()      # no run directory left behind: nothing was written
+
+
+@pytest.mark.parametrize("case", range(len(CONFIG_ERRORS)))
+def test_cli_config_errors_are_one_line_exit_2(cli_errors, case):
     """Hydra's own errors (composition, override grammar) end like every other bad input."""
-    out = main_py(*args, f"hydra.run.dir={tmp_path / 'run'}", f"hydra.sweep.dir={tmp_path / 'sweep'}")
-    assert out.returncode == 2, out.stderr
-    assert needle in out.stderr and out.stderr.startswith("l3d_app: error:")
-    assert len(out.stderr.strip().splitlines()) == 1, out.stderr
-    assert not (tmp_path / "run").exists()
+    folder, out = cli_errors[1][f"config{case}"]
+    assert out["returncode"] == 2, out["stderr"]
+    assert CONFIG_ERRORS[case][1] in out["stderr"] and out["stderr"].startswith("l3d_app: error:")
+    assert len(out["stderr"].strip().splitlines()) == 1, out["stderr"]
+    assert not (folder / "run").exists()
 
 
-def test_cli_hydra_flag_conflict_is_one_line_exit_2():
-    out = main_py("-m", "task=render360", "--cfg", "job")
-    assert out.returncode == 2 and out.stderr.strip() == (
+def test_cli_hydra_flag_conflict_is_one_line_exit_2(cli_errors):
+    out = cli_errors[1]["flag_conflict"][1]
+    assert out["returncode"] == 2 and out["stderr"].strip() == (
         "l3d_app: error: Only one of --run, --multirun, --cfg, --info and --shell_completion can be specified")
 
 
-def test_cli_run_directory_that_is_a_file_exits_2(tmp_path):
-    (tmp_path / "taken").write_text("not a folder")
-    out = main_py("num_frames=2", "image_size=16", f"hydra.run.dir={tmp_path / 'taken'}")
-    assert out.returncode == 2, out.stderr
-    assert out.stderr.startswith("l3d_app: error: File exists:") and "hydra.run.dir" in out.stderr
-    assert len(out.stderr.strip().splitlines()) == 1 and (tmp_path / "taken").read_text() == "not a folder"
+def test_cli_run_directory_that_is_a_file_exits_2(cli_errors):
+    root, out = cli_errors[0], cli_errors[1]["run_dir_is_a_file"][1]
+    assert out["returncode"] == 2, out["stderr"]
+    assert out["stderr"].startswith("l3d_app: error: File exists:") and "hydra.run.dir" in out["stderr"]
+    assert len(out["stderr"].strip().splitlines()) == 1 and (root / "taken").read_text() == "not a folder"
 
 
-def test_cli_malformed_obj_exits_2(tmp_path):
-    bad = tmp_path / "bad.obj"
-    bad.write_text("v 0 0 0\nv 1 0 0\nf 1 2 7\n")
-    out = main_py("data=mesh", f"data.path={bad}", "num_frames=2", "image_size=16",
-                  f"hydra.run.dir={tmp_path / 'run'}")
-    assert out.returncode == 2
-    assert len(out.stderr.strip().splitlines()) == 1, out.stderr
+def test_cli_malformed_obj_exits_2(cli_errors):
+    out = cli_errors[1]["malformed_obj"][1]
+    assert out["returncode"] == 2
+    assert len(out["stderr"].strip().splitlines()) == 1, out["stderr"]
 
 
 @pytest.mark.parametrize("overrides", [["camera=side_view"], ["camera=relative", "camera.translation=[0,0,2]"],

@@ -42,7 +42,7 @@ def test_ground_truth_box_reproduces_the_images():
 
 def test_box_task_recovers_the_box(compose, tmp_path):
     course_data("box")
-    cfg = compose("task=box", "iters=250", "batch_rays=1024", "eval_every=0", "gif_frames=4",
+    cfg = compose("task=box", "iters=250", "batch_rays=256", "eval_every=0", "gif_frames=4",
                   "turntable_size=16", "tensorboard=false")
     run_task(cfg, out_dir=tmp_path)
     metrics = json.loads((tmp_path / "metrics.json").read_text())

@@ -7,7 +7,7 @@ from omegaconf import OmegaConf
 
 from l3d_app.errors import UserError
 from l3d_app.runtime.config_values import config_floats
-from l3d_app.tasks.override_common import override_type_errors, value_override_keys, value_type_error
+from l3d_app.command_line import override_type_errors, value_override_keys, value_type_error
 
 
 @pytest.mark.parametrize("default, value, message", [

@@ -55,24 +55,23 @@ def test_interrupted_run_resumes_to_the_uninterrupted_result(compose, tmp_path, 
 
 
 def test_bad_data_folders_exit_2_with_one_line(tmp_path):
-    from test_app import main_py
+    from cli_batch import run_batch
 
     bad_nerf = tmp_path / "nerf"
     bad_nerf.mkdir()
     (bad_nerf / "transforms_train.json").write_text(json.dumps({"frames": []}))  # no camera_angle_x
-    for args in (["task=box", f"data.root={tmp_path / 'nothing'}"],
-                 ["task=train_nerf", "data=blender", f"data.root={bad_nerf}"]):
-        out = main_py(*args, f"hydra.run.dir={tmp_path / 'run'}")
-        assert out.returncode == 2, out.stderr
-        assert len(out.stderr.strip().splitlines()) == 1 and "Traceback" not in out.stderr
+    cases = [["task=box", f"data.root={tmp_path / 'nothing'}"], ["task=train_nerf", "data=blender", f"data.root={bad_nerf}"]]
+    for out in run_batch([[*args, f"hydra.run.dir={tmp_path / 'run'}"] for args in cases], tmp_path / "batch"):
+        assert out["returncode"] == 2, out["stderr"]
+        assert len(out["stderr"].strip().splitlines()) == 1 and "Traceback" not in out["stderr"]
         assert not (tmp_path / "run").exists()       # nothing written: the run directory is removed too
 
 
-def test_a_resumed_train_nerf_run_keeps_its_before_picture_and_figure(compose, tmp_path, monkeypatch):
+def test_a_resumed_train_nerf_run_keeps_its_before_picture_and_figure(compose, tmp_path, monkeypatch, data_cache):
     """before_val_psnr and before_after.png come from the untrained field: a resumed run carries
     them in its checkpoint (it cannot render them again), equal to the uninterrupted run's."""
-    args = ("task=train_nerf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16", "data.n_train=4",
-            "data.n_val=1", "data.n_test=1", "time_budget=0", "tensorboard=false", f"data.cache_dir={tmp_path / 'c'}")
+    args = ("task=train_nerf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16", "data.n_train=4", "batch_rays=64",
+            "data.n_val=1", "data.n_test=1", "time_budget=0", "tensorboard=false", f"data.cache_dir={data_cache}")
     run_task(compose(*args), out_dir=tmp_path / "full")
     monkeypatch.setenv("L3D_STOP_AT_STEP", "2")
     with pytest.raises(RunInterrupted):
@@ -85,19 +84,21 @@ def test_a_resumed_train_nerf_run_keeps_its_before_picture_and_figure(compose, t
 
 RESUMED_RATES = {
     "train_nerf": ("task=train_nerf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16",
-                   "data.n_train=4", "data.n_val=1", "data.n_test=1", "time_budget=0", "batch_rays=64"),
+                   "data.n_train=4", "data.n_val=1", "data.n_test=1", "time_budget=0", "batch_rays=64",
+                   "sampler.resolution=16"),
     "volsdf": ("task=volsdf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16", "data.n_train=4",
                "data.n_val=1", "data.n_test=1", "time_budget=0", "batch_rays=64", "free_space.steps=0",
-               "pretrain_steps=5", "mesh_resolution=16", "eval_points=500", "before_after=false"),
+               "pretrain_steps=5", "mesh_resolution=16", "eval_points=500", "before_after=false",
+               "sampler.resolution=16"),
     "fit_point": FIT_POINT,
 }
 
 
 @pytest.mark.parametrize("task", sorted(RESUMED_RATES))
-def test_a_resumed_runs_timings_cover_the_whole_run(compose, tmp_path, monkeypatch, task):
+def test_a_resumed_runs_timings_cover_the_whole_run(compose, tmp_path, monkeypatch, task, data_cache):
     """train_seconds (and a task's rays_per_second) of a resumed run count every step, the
     interrupted part's too: rays_per_second x train_seconds / batch_rays gives back all the steps."""
-    cache = () if task == "fit_point" else (f"data.cache_dir={tmp_path / 'c'}",)
+    cache = () if task == "fit_point" else (f"data.cache_dir={data_cache}",)
     args = (*RESUMED_RATES[task], "tensorboard=false", *cache)
     monkeypatch.setenv("L3D_STOP_AT_STEP", "2")
     with pytest.raises(RunInterrupted):
@@ -112,12 +113,12 @@ def test_a_resumed_runs_timings_cover_the_whole_run(compose, tmp_path, monkeypat
         assert steps == pytest.approx(whole["iters"], rel=1e-3), steps
 
 
-def test_resuming_a_finished_neus_anneal_run_gives_back_its_figures(compose, tmp_path):
+def test_resuming_a_finished_neus_anneal_run_gives_back_its_figures(compose, tmp_path, data_cache):
     """resume=true on a finished volsdf run with an annealed NeuS density runs no step and evaluates the
     loaded field again: with the checkpoint's last s (not the configured start) its figures are the run's
-    own (before the fix it evaluated with s = 3.0 and reported other figures)."""
+    own (not those of the configured starting s = 3.0)."""
     args = (*RESUMED_RATES["volsdf"], "density=neus", "s=3.0", "s_mode=anneal", "s_end=100", "ncc.weight=0",
-            "tensorboard=false", f"data.cache_dir={tmp_path / 'c'}")
+            "tensorboard=false", f"data.cache_dir={data_cache}")
     run_task(compose(*args), out_dir=tmp_path)
     first = read(tmp_path)
     run_task(compose(*args, "resume=true"), out_dir=tmp_path)

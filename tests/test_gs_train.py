@@ -51,10 +51,10 @@ TINY = ("task=gs_train", "data.image_size=32", "data.n_train=20", "data.n_val=2"
         "sh_every=40")
 
 
-def test_gs_train_tiny_run_reaches_a_quality_floor_val_during_test_once(compose, tmp_path):
+def test_gs_train_tiny_run_reaches_a_quality_floor_val_during_test_once(compose, tmp_path, data_cache):
     torch.set_num_threads(1)
     cfg = compose(*TINY, "iters=120", "eval_every=40", "strategy.start=40", "strategy.every=40",
-                  "strategy.densify_min_steps_left=40", f"data.cache_dir={tmp_path / 'cache'}")   # densifies at 40, 80
+                  "strategy.densify_min_steps_left=40", f"data.cache_dir={data_cache}")   # densifies at 40, 80
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     hist = m["history"]
@@ -74,18 +74,18 @@ def test_gs_train_tiny_run_reaches_a_quality_floor_val_during_test_once(compose,
         assert (tmp_path / "run" / f).is_file()
 
 
-def test_gs_train_needs_validation_views(compose, tmp_path):
+def test_gs_train_needs_validation_views(compose, tmp_path, data_cache):
     from l3d_app.errors import UserError
 
-    cfg = compose(*TINY, "iters=2", "data.n_val=0", "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
+    cfg = compose(*TINY, "iters=2", "data.n_val=0", "tensorboard=false", f"data.cache_dir={data_cache}")
     with pytest.raises(UserError, match="validation views"):
         run_task(cfg, out_dir=tmp_path / "run")
 
 
-def test_gs_train_course_strategy_keeps_a_fixed_isotropic_set(compose, tmp_path):
+def test_gs_train_course_strategy_keeps_a_fixed_isotropic_set(compose, tmp_path, data_cache):
     torch.set_num_threads(1)
     cfg = compose(*TINY, "strategy=course", "iters=60", "eval_every=30", "tensorboard=false",
-                  f"data.cache_dir={tmp_path / 'cache'}")
+                  f"data.cache_dir={data_cache}")
     assert (cfg.isotropic, cfg.ssim_lambda, cfg.sh_degree) == (True, 0.0, 0)
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
@@ -95,10 +95,10 @@ def test_gs_train_course_strategy_keeps_a_fixed_isotropic_set(compose, tmp_path)
     assert m["history"][-1]["psnr"] > m["history"][0]["psnr"] and m["psnr"] > 17.0
 
 
-def test_gs_train_mcmc_strategy_grows_to_its_cap(compose, tmp_path):
+def test_gs_train_mcmc_strategy_grows_to_its_cap(compose, tmp_path, data_cache):
     torch.set_num_threads(1)
     cfg = compose(*TINY, "strategy=mcmc", "iters=60", "eval_every=30", "strategy.start=5", "strategy.every=10",
-                  "strategy.cap_max=1700", "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
+                  "strategy.cap_max=1700", "tensorboard=false", f"data.cache_dir={data_cache}")
     run_task(cfg, out_dir=tmp_path / "run")
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert m["n_gaussians"] == 1700
@@ -120,108 +120,27 @@ def test_gs_render_turntable_of_a_ply(compose, tmp_path):
 
 
 @pytest.mark.parametrize("min_left,expect_reset", [(0, True), (5, False)])
-def test_gs_train_skips_an_opacity_reset_too_close_to_the_end(compose, tmp_path, min_left, expect_reset):
+def test_gs_train_skips_an_opacity_reset_too_close_to_the_end(compose, tmp_path, min_left, expect_reset, data_cache):
     """iters=26, a reset due at step 24: two steps are left, so a margin of 5 skips it (the
     opacities stay near their 0.1 start) and a margin of 0 makes it (they end near 0.01)."""
     torch.set_num_threads(1)
     cfg = compose("task=gs_train", "iters=26", "eval_every=26", "data.image_size=24", "data.n_train=8",
                   "data.n_test=1", "n_init=600", "strategy.start=1000", "strategy.opacity_reset_every=24",
                   f"strategy.reset_min_steps_left={min_left}", "time_budget=0", "tensorboard=false",
-                  f"data.cache_dir={tmp_path / 'cache'}")
+                  f"data.cache_dir={data_cache}")
     run_task(cfg, out_dir=tmp_path / "run")
     g = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["trainable"]["modules"]["gaussians"]
     mean_opacity = float(torch.sigmoid(g["opacity_logits"]).mean())
     assert (mean_opacity < 0.03) if expect_reset else (mean_opacity > 0.06), mean_opacity
 
 
-@pytest.mark.parametrize("schedule,fit,compressed", [("budget", None, False), ("budget", 13, True), ("steps", 13, False)])
-def test_gs_train_schedules_follow_the_steps_the_budget_lets_it_run(compose, tmp_path, monkeypatch, schedule, fit,
-                                                                    compressed):
-    """schedule=budget with a time budget the loop predicts will stop the 26-step run at step 13
-    (the prediction faked, the run cut at 13): the means' LR has decayed all the way and the
-    opacity reset due at nominal step 20 took place (at step 10). Read by step (no binding
-    budget, or schedule=steps) the LR is half-way (decay^0.5) and the reset is still ahead."""
-    from l3d_app.runtime import training
-    torch.set_num_threads(1)
-    if fit is not None:
-        monkeypatch.setattr(training._LoopClock, "predicted_steps", lambda self, *a: float(fit))
-    monkeypatch.setenv("L3D_STOP_AT_STEP", "13")
-    cfg = compose("task=gs_train", f"schedule={schedule}", "iters=26", "lr_decay_steps=26", "eval_every=26",
-                  "data.image_size=24", "data.n_train=8", "data.n_test=1", "n_init=600", "strategy.start=1000",
-                  "strategy.opacity_reset_every=20", "strategy.reset_min_steps_left=0", "time_budget=100000",
-                  f"data.cache_dir={tmp_path / 'cache'}")
-    with pytest.raises(RunInterrupted):
-        run_task(cfg, out_dir=tmp_path / "run")
-    tags = _events(tmp_path / "run").Tags()["scalars"]
-    if schedule == "budget":          # TensorBoard shows how far the schedule has come (logged every 10 steps)
-        nominal = {e.step: e.value for e in _events(tmp_path / "run").Scalars("strategy/nominal_step")}
-        # the first step runs before the loop has any prediction: nominal 1, then 2 per step
-        assert nominal == pytest.approx({1: 1.0, 11: 22.0} if compressed else {1: 1.0, 11: 11.0})
-    else:
-        assert "strategy/nominal_step" not in tags
-    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["trainable"]
-    means_lr = next(g["lr"] for g in state["optimizer"]["param_groups"] if g["name"] == "means")
-    decay = float(cfg.lr.means_final) / float(cfg.lr.means)
-    base = state["schedulers"][0]["base_lrs"][0]
-    assert means_lr / base == pytest.approx(decay ** (1.0 if compressed else 0.5), rel=1e-6)
-    mean_opacity = float(torch.sigmoid(state["modules"]["gaussians"]["opacity_logits"]).mean())
-    assert (mean_opacity < 0.03) if compressed else (mean_opacity > 0.06), mean_opacity
-
-
-def test_gs_train_refine_compresses_the_lr_and_ends_growth_by_the_steps_that_fit(compose, tmp_path, monkeypatch):
-    """schedule=refine, the loop's prediction faked to 13 of 26 steps, the run cut at 13: the means'
-    LR has decayed all the way (as under budget), while the opacity reset stays on its step cadence
-    (due at step 20, not reached: opacities untouched). The growth phase's end follows the steps
-    the budget leaves at the recent seconds per step: a budget with ~3 steps' worth of seconds left
-    ends it (logged strategy/until) far below strategy.until."""
-    from l3d_app.runtime import training
-    torch.set_num_threads(1)
-    monkeypatch.setattr(training._LoopClock, "predicted_steps", lambda self, *a: 13.0)
-    monkeypatch.setenv("L3D_STOP_AT_STEP", "13")
-    cfg = compose("task=gs_train", "schedule=refine", "iters=26", "lr_decay_steps=26", "eval_every=26",
-                  "data.image_size=24", "data.n_train=8", "data.n_test=1", "n_init=600", "strategy.start=1000",
-                  "strategy.opacity_reset_every=20", "strategy.reset_min_steps_left=0", "time_budget=100000",
-                  "log_every=1", f"data.cache_dir={tmp_path / 'cache'}")
-    with pytest.raises(RunInterrupted):
-        run_task(cfg, out_dir=tmp_path / "run")
-    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["trainable"]
-    means_lr = next(g["lr"] for g in state["optimizer"]["param_groups"] if g["name"] == "means")
-    decay = float(cfg.lr.means_final) / float(cfg.lr.means)
-    assert means_lr / state["schedulers"][0]["base_lrs"][0] == pytest.approx(decay, rel=1e-6)
-    assert float(torch.sigmoid(state["modules"]["gaussians"]["opacity_logits"]).mean()) > 0.06
-    until = {e.step: e.value for e in _events(tmp_path / "run").Scalars("strategy/until")}
-    assert until[1] == pytest.approx(3000.0 * 26 / 26)          # time to spare: the whole phase
-    # a step that takes 1 s (gs_train's step clock faked) under a 10 s budget: at step 3 at most
-    # 10 more fit, so the phase ends by 3000 x (3 + 10) / 26 = 1500 (no step time yet at step 1: 3000)
-    import time as real_time
-    import types
-
-    from l3d_app.pipelines import splats as step_clock          # gs_train's steps are timed there
-    ticks = iter(range(10 ** 6))
-    monkeypatch.setattr(step_clock, "time", types.SimpleNamespace(perf_counter=lambda: float(next(ticks)),
-                                                                process_time=real_time.process_time))
-    monkeypatch.setenv("L3D_STOP_AT_STEP", "3")
-    with pytest.raises(RunInterrupted):
-        run_task(compose("task=gs_train", "schedule=refine", "iters=26", "eval_every=26", "data.image_size=24",
-                         "data.n_train=8", "data.n_test=1", "n_init=600", "time_budget=10", "reserve=0", "log_every=1",
-                         f"data.cache_dir={tmp_path / 'cache'}"), out_dir=tmp_path / "tight")
-    until = {e.step: e.value for e in _events(tmp_path / "tight").Scalars("strategy/until")}
-    assert until[1] == 3000.0 and 0 < until[3] <= 1500.0, until
-
-
-def test_gs_train_rejects_an_unknown_schedule(compose, tmp_path):
-    with pytest.raises(UserError, match="schedule must be steps, budget or refine"):
-        run_task(compose("task=gs_train", "schedule=epochs", "tensorboard=false",
-                         f"data.cache_dir={tmp_path / 'cache'}"), out_dir=tmp_path / "run")
-
-
-def test_gs_train_resume_is_bitwise_identical(compose, tmp_path, monkeypatch):
+def test_gs_train_resume_is_bitwise_identical(compose, tmp_path, monkeypatch, data_cache):
     """N steps in one go == N/2 steps, interrupted, then resumed (density accumulators included)."""
     torch.set_num_threads(1)
     args = ("task=gs_train", "iters=36", "eval_every=18", "data.image_size=24", "data.n_train=8", "data.n_test=1",
             "n_init=600", "strategy.start=6", "strategy.every=6", "strategy.opacity_reset_every=24",
             "strategy.reset_min_steps_left=0", "strategy.densify_min_steps_left=0", "sh_every=12", "tensorboard=false",
-            f"data.cache_dir={tmp_path / 'cache'}")
+            f"data.cache_dir={data_cache}")
     run_task(compose(*args), out_dir=tmp_path / "full")
     monkeypatch.setenv("L3D_STOP_AT_STEP", "15")          # mid-way between two densifications
     with pytest.raises(RunInterrupted):
@@ -263,7 +182,7 @@ def test_colors_from_views_median_of_the_pixels_seen():
     torch.testing.assert_close(c[1:], torch.full((2, 3), 0.5))
 
 
-def test_gs_train_scene_extent_reads_the_training_cameras_only(compose, tmp_path, monkeypatch):
+def test_gs_train_scene_extent_reads_the_training_cameras_only(compose, tmp_path, monkeypatch, data_cache):
     """The extent that scales the means' LR and the densification thresholds comes from the
     training cameras (3DGS); the test cameras' poses take no part in training."""
     from l3d_app.registry import DATASETS
@@ -274,7 +193,7 @@ def test_gs_train_scene_extent_reads_the_training_cameras_only(compose, tmp_path
     monkeypatch.setattr(DefaultStrategy, "initialize",
                         lambda self, model, opt, extent: (seen.setdefault("extent", extent), real(self, model, opt, extent))[1])
     cfg = compose("task=gs_train", "iters=1", "eval_every=1", "data.image_size=24", "data.n_train=8", "data.n_test=3",
-                  "n_init=200", "tensorboard=false", f"data.cache_dir={tmp_path / 'cache'}")
+                  "n_init=200", "tensorboard=false", f"data.cache_dir={data_cache}")
     run_task(cfg, out_dir=tmp_path / "run")
     data = DATASETS.build(cfg.data)
     spread = lambda c: float((c - c.mean(0)).norm(dim=-1).max())    # noqa: E731

@@ -1,4 +1,4 @@
-"""The numerically hard cases again, under bfloat16 autocast (issue 16.6).
+"""The numerically hard cases again, under bfloat16 autocast.
 
 Under ``torch.autocast("cpu", dtype=torch.bfloat16)`` only matmul-like ops (Linear, mm, bmm,
 matmul, einsum's matmul) run in bf16 and return bf16; elementwise ops, exp/log, cumsum and

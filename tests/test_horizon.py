@@ -10,12 +10,14 @@ import pytest
 import torch
 
 from l3d_app.runtime import training
+from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.horizon import Horizon, scheduled_event
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.lr_schedules import exponential, on_horizon, step_decay, warmup_cosine
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.seed import seed_everything
+from l3d_app.runtime.training import LoopSpec
 
 
 def test_nominal_step_compresses_the_schedule_into_the_predicted_steps():
@@ -62,7 +64,6 @@ def run_budgeted(tmp_path, monkeypatch, with_horizon: bool, eval_cost=lambda n: 
     task timed before training (so the loop runs no pricing validation of its own; the horizon
     reads only the loop's validations)."""
     clock = types.SimpleNamespace(elapsed=0.0)
-    monkeypatch.setattr(training, "time", types.SimpleNamespace(perf_counter=lambda: clock.elapsed))
     ctx = RunContext(out_dir=tmp_path, device=torch.device("cpu"), generator=seed_everything(0),
                      logger=RunLogger(tmp_path, enabled=False), stopwatch=clock,
                      time_budget=300.0, reserve=10.0)
@@ -83,8 +84,7 @@ def run_budgeted(tmp_path, monkeypatch, with_horizon: bool, eval_cost=lambda n: 
         clock.elapsed += eval_cost(len(seen.setdefault("evals", [])))
         seen["evals"].append(step)
         return {"x": 0.0}
-    result = training.train(ctx, trainable, step_fn, iters=1000, eval_fn=eval_fn, eval_every=20,
-                             reserve_evals=3.0, horizon=horizon if with_horizon else None, eval_price=eval_price)
+    result = training.train(ctx, trainable, step_fn, LoopSpec(1000, eval_every=20), eval_fn=eval_fn, budget=TimeBudget.of(ctx, evals_after=3.0, eval_price=eval_price, horizon=horizon if with_horizon else None))
     return result, seen
 
 
@@ -126,8 +126,7 @@ def test_without_a_budget_the_horizon_stays_at_iters(tmp_path):
     horizon = Horizon(30)
     opt, scheds = build_optimizer({"name": "warmup_cosine", "lr": 0.1, "warmup_steps": 0, "final_ratio": 0.05},
                                   model.parameters(), 30, horizon=horizon)
-    training.train(ctx, training.Trainable({"model": model}, opt, schedulers=scheds),
-                   lambda i: {"loss": model(torch.ones(1, 2)).pow(2).sum()}, iters=30, horizon=horizon)
+    training.train(ctx, training.Trainable({"model": model}, opt, schedulers=scheds), lambda i: {"loss": model(torch.ones(1, 2)).pow(2).sum()}, LoopSpec(30), budget=TimeBudget.of(ctx, horizon=horizon))
     assert horizon.steps == 30 and opt.param_groups[0]["lr"] == pytest.approx(0.1 * 0.05)
 
 

@@ -50,7 +50,7 @@ def test_train_nerf_learns_the_background_of_a_capture(compose, tmp_path):
     _grey_blender(tmp_path / "scene")
     common = ["task=train_nerf", "data=blender", f"data.root={tmp_path / 'scene'}", "data.background=white",
               "data.val_every=0", "iters=60", "eval_every=60", "batch_rays=64", "gif_frames=0", "tensorboard=false",
-              "threads=1", "lr=0.02"]
+              "threads=1", "optim.lr=0.02", "sampler.resolution=16"]
     learnt = run_task(compose(*common, "learn_background=true", "objective=psnr"), out_dir=tmp_path / "learn")
     fixed = run_task(compose(*common, "learn_background=false", "objective=psnr"), out_dir=tmp_path / "fixed")
     m = json.loads((tmp_path / "learn" / "metrics.json").read_text())
@@ -90,6 +90,7 @@ def test_volsdf_learns_the_background_of_a_capture(compose, tmp_path):
     learnt, fixed = _learnt_background(compose, tmp_path, "volsdf", "iters=80", "eval_every=80", "gif_frames=0", "warmup_steps=5",
                                        "free_space.steps=0",
                                        "batch_rays=64", "pretrain_steps=20", "mesh_resolution=16",
-                                       "eval_points=500", "before_after=false", "supersample=1")
+                                       "eval_points=500", "before_after=false", "supersample=1", "sampler.resolution=24",
+                                       "time_budget=0")
     assert fixed == [1.0, 1.0, 1.0]
     assert max(abs(c - 90 / 255) for c in learnt) < 0.5 * (1 - 90 / 255), learnt

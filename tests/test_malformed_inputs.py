@@ -1,4 +1,4 @@
-"""Malformed files and knobs found by a bad-input audit (2026-11-27): each is one UserError
+"""Malformed files and knobs: each is one UserError
 naming the file and the problem, never a ZeroDivisionError, a 70 TiB allocation, a
 quantile of nothing, an unpickling traceback or a run that trains on a NaN focal length."""
 
@@ -19,7 +19,7 @@ from l3d_app.data.nerf_formats import blender
 from l3d_app.data.nerfstudio import nerfstudio
 from l3d_app.errors import UserError
 from l3d_app.geometry.gaussian_ply import load_gaussian_ply, save_gaussian_ply
-from l3d_app.runtime.training import read_checkpoint
+from l3d_app.runtime.checkpoints import read_checkpoint
 
 
 def _ns(root, meta):
@@ -172,7 +172,7 @@ def test_gs_render_refuses_non_positive_sizes_before_reading_the_ply(compose, tm
                  out_dir=tmp_path / "run")
 
 
-# -- the second audit (262 cases over the other tasks and loaders) -------------------------------
+# -- the other tasks and loaders --------------------------------------------------------------------
 
 def test_array_files_numpy_cannot_read_are_one_user_error(tmp_path):
     from l3d_app.data.array_files import load_array_file
@@ -316,9 +316,12 @@ def test_course_rgbd_with_no_valid_pixel(tmp_path, monkeypatch):
     assert module.course_rgbd(str(tmp_path / "rgbd.pkl"), view="1").points.shape == (16, 3)
 
 
-def test_svr_eval_view_outside_the_views_per_object(compose, tmp_path):
+def test_svr_eval_view_outside_the_views_per_object(compose, tmp_path, data_cache):
     with pytest.raises(UserError, match=r"eval_view must be in \[0, "):
-        run_task(compose("task=svr_train", "eval_view=99", "tensorboard=false"), out_dir=tmp_path / "run")
+        run_task(compose("task=svr_train", "eval_view=99", "tensorboard=false", "image_size=16",
+                         f"data.cache_dir={data_cache}", "data.train_per_class=2", "data.test_per_class=1",
+                         "data.voxel_size=16", "data.num_points=256", "data.occupancy_points=256", "data.depth_views=3"),
+                 out_dir=tmp_path / "run")
 
 
 @pytest.mark.parametrize("args,problem", [
@@ -334,11 +337,11 @@ def test_svr_eval_view_outside_the_views_per_object(compose, tmp_path):
     (("task=sds_mesh", "distance_range=[8]"), r"distance range \[lo, hi\] must be a list of 2 numbers, got \[8\]"),
     (("task=sds_mesh", "elevation_range=[0,95]"), r"strictly inside \(-90, 90\)"),
     (("task=sds_nerf", "fov_range=[50,30]"), "fov range must be"),
-    # a third audit (2026-11-27): string and list knobs
+    # string and list knobs
     (("task=render360", "point_renderer.radius_units=bogus"), "unknown radius_units 'bogus'"),   # renderer unused by mesh data
     (("task=render360", "light_direction=[1,2]"), r"light_direction must be a list of 3 numbers, got \[1, 2\]"),
     (("task=render360", "point_lights=[1,2,3]"), r"point_lights must be a list of \[x, y, z\] positions"),
-    (("task=fit_mesh", "renderer.shading=bogus"), "unknown shading 'bogus'"),                   # was: after training
+    (("task=fit_mesh", "renderer.shading=bogus"), "unknown shading 'bogus'"),                   # before training
     (("task=fit_point", "camera.name=bogus"), "unknown camera path 'bogus'"),
     (("task=pointnet_cls", "rotation_axis=bogus"), "rotation axis must be x, y or z"),          # augment_rotation off
     (("task=pointnet_cls", "num_vis=1", "point_renderer.radius_units=bogus"), "unknown radius_units"),
@@ -356,7 +359,7 @@ def test_svr_eval_view_outside_the_views_per_object(compose, tmp_path):
     (("task=volsdf", "mesh_formats=5"), "mesh_formats must be a name or a list of names"),
 ])
 def test_knobs_checked_before_the_data_is_built(compose, tmp_path, monkeypatch, args, problem):
-    """A second audit (2026-11-27) found these checked only after rendering, loading or training had started."""
+    """Checked before rendering, loading or training starts."""
     from l3d_app import registry
     from l3d_app.tasks import point_common
 
@@ -414,7 +417,7 @@ def test_neural_sdf_needs_points_with_extent_and_both_splits(compose, tmp_path):
 
 
 def test_an_unreadable_pointnet_checkpoint_is_named(tmp_path):
-    from l3d_app.tasks.point_common import load_model
+    from l3d_app.pipelines.point_nets import load_model
 
     (tmp_path / "best.pt").write_text("garbage\n")
     with pytest.raises(UserError, match=r"best.pt is not a readable pointnet best.pt checkpoint \("):

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from l3d_app.render import field_mesh
-from l3d_app.render.field_mesh import (MESH_PRICED_AT, PROBE_RESOLUTION, mesh_seconds_at, priced_mesh_seconds,
-                                       seconds_per_grid_point)
+from l3d_app.render.field_mesh import PROBE_RESOLUTION, seconds_per_grid_point
+from l3d_app.runtime.budget import MESH_PRICED_AT, TimeBudget, mesh_seconds_at
 
 BOX = ([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0])
 
@@ -53,12 +53,17 @@ def test_the_price_follows_the_grid(resolution, at_128, expected):
 
 
 def test_nothing_is_measured_at_128_or_without_a_budget(clock):
-    assert priced_mesh_seconds(128, 35.0, clock.level_fn, BOX, time_budget=590.0) == (35.0, None)
-    assert priced_mesh_seconds(256, 35.0, clock.level_fn, BOX, time_budget=0.0) == (35.0, None)
+    def measure():
+        return seconds_per_grid_point(clock.level_fn, BOX)
+    for seconds, resolution in ((590.0, 128), (0.0, 256)):
+        timer = TimeBudget(seconds, reserve=5.0)
+        assert timer.keep_mesh(resolution, 35.0, measure) == 35.0 and timer.reserve == 40.0
     assert clock.points == 0
-    seconds, per_point = priced_mesh_seconds(256, 35.0, clock.level_fn, BOX, time_budget=590.0)
-    assert per_point == pytest.approx(2e-6, rel=1e-12)
-    assert seconds == pytest.approx(35.0 + 58.720256, rel=1e-9)
+    notes = []
+    timer = TimeBudget(590.0, note=lambda tag, text: notes.append((tag, text)))
+    assert timer.keep_mesh(256, 35.0, measure) == pytest.approx(35.0 + 58.720256, rel=1e-9)
+    assert timer.reserve == pytest.approx(35.0 + 58.720256, rel=1e-9)
+    assert notes[0][0] == "reserve" and "2.00 us per grid point" in notes[0][1]
 
 
 class _Reserved(Exception):
@@ -87,11 +92,11 @@ def test_a_task_keeps_the_priced_seconds_for_its_mesh(compose, tmp_path, monkeyp
     module = importlib.import_module(f"l3d_app.tasks.{task}")
     seen = {}
 
-    def fake_train(*args, **kwargs):
-        seen["reserve"] = kwargs["reserve"]
+    def fake_train(ctx, trainable, step_fn, spec, eval_fn=None, budget=None, after_step=None):
+        seen["reserve"] = budget.reserve
         raise _Reserved
     monkeypatch.setattr(module, "train", fake_train)
-    monkeypatch.setattr(field_mesh, "seconds_per_grid_point", lambda *a, **k: 1e-6)
+    monkeypatch.setattr(module, "seconds_per_grid_point", lambda *a, **k: 1e-6)
     with pytest.raises(_Reserved):
         run_task(compose(*overrides), out_dir=tmp_path)
     assert seen["reserve"] == pytest.approx(expected, rel=1e-12)

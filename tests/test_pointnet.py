@@ -15,7 +15,7 @@ from l3d_app.data.shape_parts import CLASS_NAMES, PART_NAMES, lathe, shape_parts
 from l3d_app.errors import UserError
 from l3d_app.models.dgcnn import dgcnn
 from l3d_app.models.pointnet import pointnet
-from l3d_app.tasks.point_common import rotate, rotations
+from l3d_app.pipelines.point_nets import rotate, rotations
 
 CHAIR_PARTS = {PART_NAMES.index(p) for p in ("chair/seat", "chair/back", "chair/legs", "chair/arms")}
 
@@ -457,12 +457,15 @@ def test_pointnet2_task_beats_chance(compose, cache_dir, tmp_path):
 
 def test_preview_gifs_stop_when_the_last_ones_cost_no_longer_fits(compose, tmp_path):
     """Under a time budget the gifs (previews) are written while the last gif's cost still fits the
-    seconds left: with 1 ms left after the first, only the first is written, and a note says so;
-    without a budget all of them."""
+    seconds left: 5 s left at the start, then a fake clock on which the first gif takes 0.5 s with
+    1 ms left: only the first is written; without a budget all of them."""
+    from l3d_app.pipelines.point_nets import Evaluation
+    from l3d_app.pipelines.point_visuals import write_visuals
+    from l3d_app.runtime.budget import TimeBudget
     from l3d_app.runtime.context import RunContext
     from l3d_app.runtime.logger import RunLogger
     from l3d_app.runtime.seed import seed_everything
-    from l3d_app.tasks.point_common import Evaluation, write_visuals
+    from l3d_app.tasks.point_common import turntable
 
     cfg = compose("task=pointnet_seg", "num_vis=3", "vis_failures=true", "num_frames=2", "image_size=32")
     g = torch.Generator().manual_seed(0)
@@ -470,11 +473,12 @@ def test_preview_gifs_stop_when_the_last_ones_cost_no_longer_fits(compose, tmp_p
     target = torch.randint(0, 3, (6, 64), generator=g)
     ev = Evaluation(pts, target.flip(1), target, 0.3)
     class_of = torch.tensor([0, 0, 1, 1, 2, 2])
-    for budget, left, expect in ((0.0, None, (3, 3)), (60.0, iter([5.0, 1e-3, 1e-3]), (1, 0))):
-        ctx = RunContext(out_dir=tmp_path / f"b{budget:g}", device=torch.device("cpu"), generator=seed_everything(0),
-                         logger=RunLogger(tmp_path / f"b{budget:g}", enabled=False), time_budget=budget)
-        if left is not None:
-            ctx.seconds_left = lambda it=left: next(it, 1e-3)
-        out = write_visuals(cfg, ctx, ev, "seg", ["a", "b", "c"], class_of, ["x", "y", "z"])
+    for seconds, readings, expect in ((0.0, [], (3, 3)), (60.0, [55.0, 59.999, 59.999, 60.5], (1, 0))):
+        ctx = RunContext(out_dir=tmp_path / f"b{seconds:g}", device=torch.device("cpu"), generator=seed_everything(0),
+                         logger=RunLogger(tmp_path / f"b{seconds:g}", enabled=False))
+        clock = iter(readings)
+        budget = TimeBudget(seconds, clock=lambda: next(clock, 60.5))
+        out = write_visuals(ctx, ev, "seg", ["a", "b", "c"], class_of, ["x", "y", "z"], turntable(cfg, ctx), 3, True,
+                            12.0, 0, budget)
         assert (out["n_vis"], out["n_failure_gifs"]) == expect
         assert len(list((ctx.out_dir / "vis").glob("*.gif"))) == sum(expect)

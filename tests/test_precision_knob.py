@@ -9,7 +9,7 @@ import torch
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.seed import seed_everything
-from l3d_app.runtime.training import Trainable, train
+from l3d_app.runtime.training import LoopSpec, Trainable, train
 
 
 def run_loop(tmp_path, precision, iters=200):
@@ -26,7 +26,7 @@ def run_loop(tmp_path, precision, iters=200):
         y = model(x)
         seen.append(y.dtype)
         return {"loss": ((y.float() - x @ target.T) ** 2).mean()}
-    train(ctx, trainable, step, iters=iters)
+    train(ctx, trainable, step, LoopSpec(iters))
     return model, seen, target
 
 
@@ -57,6 +57,6 @@ def test_a_bad_precision_is_one_line_exit_2_and_writes_nothing(tmp_path):
 def test_a_task_trains_under_bf16(compose, tmp_path):
     # fit_vox under bf16 still fits: its final IoU clears the floor the fp32 run clears
     from l3d_app.app import run_task
-    run_task(compose("task=fit_vox", "precision=bf16", "num_frames=2", "image_size=16"), out_dir=tmp_path)
+    run_task(compose("task=fit_vox", "precision=bf16", "voxel_size=16", "num_frames=2", "image_size=16"), out_dir=tmp_path)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["iou"] > 0.9, metrics  # fp32 and bf16 both measured 1.0; an untrained grid is far below

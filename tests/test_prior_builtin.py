@@ -114,7 +114,7 @@ def test_ddim_sampling_shapes_and_range():
 @pytest.mark.parametrize("space", ["pixel", "latent"])
 def test_shipped_prior_samples_match_their_prompts(space):
     from l3d_app.metrics.prompt_match import match_rate
-    from l3d_app.tasks.prior_common import full_prompts
+    from l3d_app.prompt_vocab import full_prompts
     prior = load_builtin_prior(space)
     assert DEFAULT_CHECKPOINT.stat().st_size < 2_000_000
     prompts = full_prompts(4)

@@ -107,7 +107,7 @@ def test_camera_path_json_round_trip_and_faults(tmp_path):
         read_camera_path(tmp_path / "scaled.json")
 
 
-def test_render_path_on_a_gs_train_run_matches_the_model(compose, tmp_path):
+def test_render_path_on_a_gs_train_run_matches_the_model(compose, tmp_path, data_cache):
     from omegaconf import OmegaConf
 
     from l3d_app.data.nerf_views import nerf_builtin
@@ -116,7 +116,7 @@ def test_render_path_on_a_gs_train_run_matches_the_model(compose, tmp_path):
     from l3d_app.render.gaussians.rasterize import rasterize_gaussians
 
     data_args = ["data.image_size=24", "data.n_train=12", "data.n_val=1", "data.n_test=1", "data.antialias=1",
-                 f"data.cache_dir={tmp_path / 'cache'}"]
+                 f"data.cache_dir={data_cache}"]
     run = tmp_path / "gs"
     cfg = compose("task=gs_train", *data_args, "iters=6", "eval_every=6", "n_init=300", "tensorboard=false",
                   "threads=1", "sh_degree=0")
@@ -131,7 +131,7 @@ def test_render_path_on_a_gs_train_run_matches_the_model(compose, tmp_path):
     r = imageio.get_reader(tmp_path / "rp" / "path.mp4")
     assert sum(1 for _ in r) == 8
     # frame 0 = the first training camera; rendered independently from gs_train's own PLY
-    data = nerf_builtin(image_size=24, n_train=12, n_val=1, n_test=1, antialias=1, cache_dir=str(tmp_path / "cache"))
+    data = nerf_builtin(image_size=24, n_train=12, n_val=1, n_test=1, antialias=1, cache_dir=str(data_cache))
     model = GaussianModel(**load_gaussian_ply(run / "point_cloud.ply"))
     ref = rasterize_gaussians(model.means, model.log_scales, model.quats, model.opacity_logits, model.sh, 0,
                               data.cameras[int(data.train[0])], data.background)["color"][0]
@@ -152,15 +152,18 @@ def test_render_path_on_a_gs_train_run_matches_the_model(compose, tmp_path):
     assert not (tmp_path / "bad" / "path.mp4").exists()
 
 
+FIELD_RUN = ["gif_frames=0", "before_after=false", "time_budget=0"]
+VOLSDF_RUN = [*FIELD_RUN, "iters=30", "eval_every=30", "supersample=1", "pretrain_steps=50", "free_space.steps=0",
+              "mesh_resolution=16", "sampler.resolution=24"]
+
+
 @pytest.mark.parametrize("task, extra", [
-    ("train_nerf", ["iters=40", "eval_every=40", "gif_frames=2"]),
-    ("volsdf", ["iters=30", "eval_every=30", "supersample=1", "pretrain_steps=50", "gif_frames=0", "free_space.steps=0"]),
-    ("volsdf", ["iters=30", "eval_every=30", "supersample=1", "pretrain_steps=50", "gif_frames=0", "free_space.steps=0",
-                "density=neus", "s=3.0", "s_mode=anneal", "s_end=100"]),    # the loaded s is the run's last, not s_start
-    ("volsdf", ["iters=30", "eval_every=30", "supersample=1", "pretrain_steps=50", "gif_frames=0", "free_space.steps=0",
-                "beta=0.33", "beta_end=0.01", "data.elevation_range=[-60,60]"]),   # density=auto picks NeuS here
+    ("train_nerf", [*FIELD_RUN, "iters=40", "eval_every=40", "batch_rays=512"]),
+    ("volsdf", VOLSDF_RUN),
+    ("volsdf", [*VOLSDF_RUN, "density=neus", "s=3.0", "s_mode=anneal", "s_end=100"]),  # the loaded s is the run's last
+    ("volsdf", [*VOLSDF_RUN, "beta=0.33", "beta_end=0.01", "data.elevation_range=[-60,60]"]),  # density=auto picks NeuS
 ])
-def test_render_path_of_a_field_run_reproduces_its_test_psnr(compose, tmp_path, task, extra):
+def test_render_path_of_a_field_run_reproduces_its_test_psnr(compose, tmp_path, task, extra, data_cache):
     """render_path of a train_nerf / volsdf run, along a camera_path.json holding the run's test camera,
     must give the test PSNR the task itself reported (the task's evaluation is the reference)."""
     from omegaconf import OmegaConf
@@ -168,7 +171,7 @@ def test_render_path_of_a_field_run_reproduces_its_test_psnr(compose, tmp_path, 
     from l3d_app.data.nerf_views import nerf_builtin
 
     data_args = ["data.image_size=24", "data.n_train=12", "data.n_val=1", "data.n_test=1", "data.antialias=1",
-                 f"data.cache_dir={tmp_path / 'cache'}"]
+                 f"data.cache_dir={data_cache}"]
     run = tmp_path / task
     cfg = compose(f"task={task}", *data_args, *extra, "tensorboard=false", "threads=1")
     run_task(cfg, out_dir=run)
@@ -178,7 +181,7 @@ def test_render_path_of_a_field_run_reproduces_its_test_psnr(compose, tmp_path, 
     psnr_task = metrics["psnr"]
     if "data.elevation_range=[-60,60]" in extra:     # density=auto, cameras from -60 to 60 degrees: half below, NeuS
         assert metrics["density"] == "neus" and metrics["s_final"] == pytest.approx(100.0, rel=1e-3)
-    data = nerf_builtin(image_size=24, n_train=12, n_val=1, n_test=1, antialias=1, cache_dir=str(tmp_path / "cache"),
+    data = nerf_builtin(image_size=24, n_train=12, n_val=1, n_test=1, antialias=1, cache_dir=str(data_cache),
                         elevation_range=tuple(cfg.data.elevation_range))
     test = int(data.test[0])
     write_camera_path(tmp_path / "test_cam.json", data.cameras[[test, test]])

@@ -144,7 +144,7 @@ def test_nan_prior_is_caught_and_never_applied(setup):
 def test_nan_prior_step_is_skipped_by_training_loop(setup, tmp_path):
     from l3d_app.runtime.context import RunContext
     from l3d_app.runtime.logger import RunLogger
-    from l3d_app.runtime.training import Trainable, train
+    from l3d_app.runtime.training import LoopSpec, Trainable, train
     _, _, emb, g = setup
     bad = FakePrior(nan=True).freeze()
     image = torch.nn.ParameterDict({"x": torch.nn.Parameter(torch.zeros(1, 3, 8, 8))})
@@ -152,8 +152,7 @@ def test_nan_prior_step_is_skipped_by_training_loop(setup, tmp_path):
     ctx = RunContext(out_dir=tmp_path, device=torch.device("cpu"), generator=g,
                      logger=RunLogger(tmp_path, enabled=False))
     loss = SDSLoss(on_nonfinite="flag")
-    result = train(ctx, Trainable({"image": image}, torch.optim.Adam(image.parameters(), lr=0.1)),
-                   lambda i: {"loss": loss(bad, image["x"], emb, g).loss}, iters=3)
+    result = train(ctx, Trainable({"image": image}, torch.optim.Adam(image.parameters(), lr=0.1)), lambda i: {"loss": loss(bad, image["x"], emb, g).loss}, LoopSpec(3))
     assert result.skipped_steps == 3
     torch.testing.assert_close(image["x"].detach(), before)
 

@@ -239,15 +239,6 @@ def test_default_events_follow_a_compressed_schedule():
     assert seen == [("densify", 2), ("reset", 3), ("densify", 4)]
 
 
-def test_default_growth_phase_ends_sooner_under_an_until_scale():
-    """info["until_scale"] 0.5 (gs_train's schedule=refine): densify every 2 steps from 2 and reset
-    every 4 steps on the real steps, until 16 x 0.5 = 8: densify at done 2, 4, 6, 8, the reset at 4
-    and 8, nothing after; without the scale (1) the events go on to 16."""
-    half = _default_events(16, 2, 4, 12, lambda step: {"until_scale": 0.5})
-    assert half == [("densify", 2), ("densify", 4), ("reset", 4), ("densify", 6), ("densify", 8), ("reset", 8)]
-    assert _default_events(16, 2, 4, 12, lambda step: {}) == half + [("densify", 10), ("densify", 12), ("reset", 12)]
-
-
 def test_mcmc_events_follow_a_compressed_schedule():
     """Grow (every 2 in (start 1, until 9)) at nominal 2, 4, 6, 8: steps 1, 2, 3, 4 of a schedule
     covering two nominal steps per step; by step, at steps 2, 4, 6, 8 (0-based 1, 3, 5, 7)."""

@@ -31,8 +31,8 @@ def tiny(cache, *extra):
 POINT = ("decoder=point", "decoder.num_points=64", "decoder.hidden=[32]", "decoder.target_points=64")
 
 
-def test_train_resume_and_eval(compose, tmp_path, monkeypatch):
-    cache = tmp_path / "cache"
+def test_train_resume_and_eval(compose, tmp_path, monkeypatch, data_cache):
+    cache = data_cache
     full, cut = tmp_path / "full", tmp_path / "cut"
     run_task(compose(*tiny(cache, *POINT)), out_dir=full)
     m = read(full)
@@ -65,26 +65,26 @@ def test_train_resume_and_eval(compose, tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("decoder", ["vox", "mesh", "implicit", "pseudo"])
-def test_other_decoders_train_and_evaluate(compose, tmp_path, decoder):
+def test_other_decoders_train_and_evaluate(compose, tmp_path, decoder, data_cache):
     extra = {"vox": ("decoder.width=8",), "mesh": ("decoder.ico_level=1", "decoder.hidden=[16]", "decoder.num_samples=64"),
              "implicit": ("decoder.hidden=16", "decoder.layers=2", "decoder.queries=64", "decoder.mesh_resolution=12"),
              "pseudo": ("decoder.depth_size=8", "decoder.width=16", "decoder.views_per_step=2")}[decoder]
-    run_task(compose(*tiny(tmp_path / "cache", f"decoder={decoder}", *extra, "iters=2", "eval_every=0",
+    run_task(compose(*tiny(data_cache, f"decoder={decoder}", *extra, "iters=2", "eval_every=0",
                            "vis_gif=false")), out_dir=tmp_path / "run")
     m = read(tmp_path / "run")
     assert m["decoder"] == f"svr_{decoder}" and m["iters"] == 2 and 0.0 <= m["f1"] <= 1.0
     assert (tmp_path / "run" / "f1_curve.png").exists()
 
 
-def test_training_beats_the_untrained_model(compose, tmp_path):
+def test_training_beats_the_untrained_model(compose, tmp_path, data_cache):
     """Test-split F1 after a short training run is well above the same model's at its initial
     weights (same seed; lr=1e-12 keeps the weights where they start; svr_eval reads that
     model back). A decoder or loss that learnt nothing (wrong target, detached prediction)
     would fail."""
     common = ("decoder=point", "decoder.num_points=256", "decoder.hidden=[64]", "decoder.target_points=256",
               "data.train_per_class=5", "eval_points=256", "eval_every=0", "num_vis=0", "vis_gif=false")
-    run_task(compose(*tiny(tmp_path / "cache", *common, "iters=1", "lr=1e-12")), out_dir=tmp_path / "init")
-    run_task(compose(*tiny(tmp_path / "cache", *common, "iters=80", "lr=0.003")), out_dir=tmp_path / "trained")
+    run_task(compose(*tiny(data_cache, *common, "iters=1", "lr=1e-12")), out_dir=tmp_path / "init")
+    run_task(compose(*tiny(data_cache, *common, "iters=80", "lr=0.003")), out_dir=tmp_path / "trained")
     run_task(compose("task=svr_eval", "tensorboard=false", f"checkpoint={tmp_path / 'init'}", "eval_points=256",
                      "num_vis=0", "vis_gif=false"), out_dir=tmp_path / "init_eval")
     before, after = read(tmp_path / "init_eval"), read(tmp_path / "trained")

@@ -7,10 +7,11 @@ import signal
 import torch
 
 from l3d_app.runtime.context import RunContext
+from l3d_app.runtime.guard import tensors_finite
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.lr_schedules import warmup_cosine
 from l3d_app.runtime.seed import seed_everything
-from l3d_app.runtime.training import CHECKPOINT, Trainable, tensors_finite, train
+from l3d_app.runtime.training import CHECKPOINT, LoopSpec, Trainable, train
 
 
 def make_ctx(out_dir, seed=0):
@@ -39,9 +40,7 @@ def regression_step(ctx, model, poison=()):
 def test_converges_and_evaluates(tmp_path):
     ctx = make_ctx(tmp_path)
     model, trainable = make_problem()
-    result = train(ctx, trainable, regression_step(ctx, model), iters=300,
-                   eval_fn=lambda s: {"w_err": float((model.weight - torch.tensor([[1.0, -2.0, 0.5]])).abs().max())},
-                   eval_every=100)
+    result = train(ctx, trainable, regression_step(ctx, model), LoopSpec(300, eval_every=100), eval_fn=lambda s: {"w_err": float((model.weight - torch.tensor([[1.0, -2.0, 0.5]])).abs().max())})
     assert result.metrics["w_err"] < 0.05 and result.step == 300 and not result.interrupted
     assert (tmp_path / CHECKPOINT).exists()
 
@@ -50,7 +49,7 @@ def test_nan_steps_are_skipped_not_applied(tmp_path):
     ctx = make_ctx(tmp_path)
     model, trainable = make_problem()
     before = {k: v.clone() for k, v in model.state_dict().items()}
-    result = train(ctx, trainable, regression_step(ctx, model, poison={0, 1}), iters=2)
+    result = train(ctx, trainable, regression_step(ctx, model, poison={0, 1}), LoopSpec(2))
     assert result.skipped_steps == 2
     for k, v in model.state_dict().items():
         assert torch.equal(v, before[k])
@@ -73,7 +72,7 @@ def test_repeated_failures_restore_last_good_state_and_checkpoints_stay_finite(t
 
     def record(i):
         after[i + 1] = model.weight.detach().clone()
-    result = train(ctx, trainable, step, iters=12, checkpoint_every=1, max_bad_steps=3, after_step=record)
+    result = train(ctx, trainable, step, LoopSpec(12, checkpoint_every=1, max_bad_steps=3), after_step=record)
     assert result.guard_stop and result.restores == 3 and result.skipped_steps == 3 and result.step == 8
     assert torch.equal(model.weight.detach(), after[3])
     state = torch.load(tmp_path / CHECKPOINT, weights_only=False)
@@ -88,7 +87,7 @@ def test_a_learning_rate_that_always_blows_up_stops_on_the_first_state(tmp_path,
     ctx = make_ctx(tmp_path)
     model, trainable = make_problem(lr=1e30)
     start = {k: v.clone() for k, v in model.state_dict().items()}
-    result = train(ctx, trainable, regression_step(ctx, model), iters=300, max_bad_steps=5)
+    result = train(ctx, trainable, regression_step(ctx, model), LoopSpec(300, max_bad_steps=5))
     assert result.guard_stop and result.restores == 3 and result.skipped_steps == 15 and result.step == 18
     for k, v in model.state_dict().items():
         assert torch.equal(v, start[k])
@@ -103,7 +102,7 @@ def test_failures_apart_by_a_clean_interval_each_restore_and_training_goes_on(tm
     ctx = make_ctx(tmp_path)
     model, trainable = make_problem()
     bursts = set(range(50, 55)) | set(range(100, 105)) | set(range(150, 155))
-    result = train(ctx, trainable, regression_step(ctx, model, poison=bursts), iters=300, max_bad_steps=5)
+    result = train(ctx, trainable, regression_step(ctx, model, poison=bursts), LoopSpec(300, max_bad_steps=5))
     assert result.restores == 3 and result.skipped_steps == 15 and not result.guard_stop and result.step == 300
     assert float((model.weight.detach() - torch.tensor([[1.0, -2.0, 0.5]])).abs().max()) < 0.05
 
@@ -127,7 +126,7 @@ def test_a_blow_up_that_stays_finite_for_a_whole_interval_is_stepped_over(tmp_pa
         if i == 4:
             with torch.no_grad():
                 model.weight.fill_(1e10)
-    result = train(ctx, trainable, step, iters=300, max_bad_steps=5, after_step=blow_up)
+    result = train(ctx, trainable, step, LoopSpec(300, max_bad_steps=5), after_step=blow_up)
     assert result.restores == 2 and result.skipped_steps == 10 and not result.guard_stop and result.step == 300
     assert float((model.weight.detach() - torch.tensor([[1.0, -2.0, 0.5]])).abs().max()) < 0.05
 
@@ -144,7 +143,7 @@ def test_a_blow_up_to_finite_values_is_not_the_state_a_restore_brings_back(tmp_p
         if step == 4:
             with torch.no_grad():
                 model.weight.fill_(1e30)
-    result = train(ctx, trainable, fit, iters=300, checkpoint_every=1, max_bad_steps=2, after_step=blow_up)
+    result = train(ctx, trainable, fit, LoopSpec(300, checkpoint_every=1, max_bad_steps=2), after_step=blow_up)
     assert result.restores == 1 and result.skipped_steps == 2
     assert float((model.weight.detach() - torch.tensor([[1.0, -2.0, 0.5]])).abs().max()) < 0.05
 
@@ -154,7 +153,7 @@ def test_interrupt_then_resume_matches_uninterrupted_run(tmp_path):
     full_dir.mkdir(), cut_dir.mkdir()
     ctx = make_ctx(full_dir, seed=3)
     model, trainable = make_problem()
-    train(ctx, trainable, regression_step(ctx, model), iters=40)
+    train(ctx, trainable, regression_step(ctx, model), LoopSpec(40))
     reference = model.weight.detach().clone()
 
     ctx = make_ctx(cut_dir, seed=3)
@@ -165,12 +164,12 @@ def test_interrupt_then_resume_matches_uninterrupted_run(tmp_path):
         if i == 17:
             os.kill(os.getpid(), signal.SIGINT)  # handled: the loop stops after this step
         return inner(i)
-    first = train(ctx, trainable, step_with_sigint, iters=40)
+    first = train(ctx, trainable, step_with_sigint, LoopSpec(40))
     assert first.interrupted and first.step == 18
 
     ctx = make_ctx(cut_dir, seed=99)  # a fresh process: state must come from the checkpoint
     model, trainable = make_problem()
-    second = train(ctx, trainable, regression_step(ctx, model), iters=40, resume=True)
+    second = train(ctx, trainable, regression_step(ctx, model), LoopSpec(40, resume=True))
     assert second.step == 40 and not second.interrupted
     torch.testing.assert_close(model.weight.detach(), reference, rtol=0, atol=0)
 
@@ -193,8 +192,7 @@ def test_a_stage_without_checkpoint_writes_none_and_logs_under_its_prefix(tmp_pa
     model, trainable = make_problem()
     seen = []
     ctx.logger.log_scalars = lambda values, step: seen.extend(values)
-    result = train(ctx, trainable, regression_step(ctx, model), iters=300, checkpoint_every=50,
-                   log_prefix="stage", checkpoint=False)
+    result = train(ctx, trainable, regression_step(ctx, model), LoopSpec(300, checkpoint_every=50, log_prefix="stage", checkpoint=False))
     assert result.step == 300 and not (tmp_path / CHECKPOINT).exists()
     assert float((model.weight.detach() - torch.tensor([[1.0, -2.0, 0.5]])).abs().max()) < 0.05
     assert "stage/loss" in seen and "stage/step_ms" in seen
@@ -207,7 +205,7 @@ def test_resume_from_another_tasks_or_another_sizes_checkpoint_is_named(tmp_path
     import pytest
 
     from l3d_app.errors import UserError
-    from l3d_app.runtime.training import load_checkpoint, save_checkpoint
+    from l3d_app.runtime.checkpoints import load_checkpoint, save_checkpoint
 
     def trainable(name, width):
         module = torch.nn.Linear(2, width)
@@ -231,12 +229,12 @@ def test_resume_without_a_checkpoint_says_so_and_guard_counts_carry_over(tmp_pat
     in the checkpoint, so a resumed run reports the whole run's, with one warning line."""
     ctx = make_ctx(tmp_path)
     model, trainable = make_problem()
-    first = train(ctx, trainable, regression_step(ctx, model, poison={1, 2}), iters=4, resume=True)
+    first = train(ctx, trainable, regression_step(ctx, model, poison={1, 2}), LoopSpec(4, resume=True))
     err = capsys.readouterr().err
     assert "resume=true, but there is no" in err and "training starts at step 0" in err
     assert "l3d_app: warning: 2 of 4 steps were skipped as non-finite" in err
     assert first.skipped_steps == 2 and first.steps_run == 4
-    again = train(ctx, trainable, regression_step(ctx, model), iters=6, resume=True)
+    again = train(ctx, trainable, regression_step(ctx, model), LoopSpec(6, resume=True))
     err = capsys.readouterr().err
     assert "no checkpoint" not in err and "warning" not in err            # nothing new was skipped
     assert again.skipped_steps == 2 and again.steps_run == 6 and again.train_seconds >= first.train_seconds
@@ -252,7 +250,7 @@ def test_an_update_that_overflows_inside_the_optimiser_is_named(tmp_path):
     ctx = make_ctx(tmp_path)
     model, trainable = make_problem(lr=1e38)
     with pytest.raises(UserError, match="optimiser's update overflowed at step 0"):
-        train(ctx, trainable, regression_step(ctx, model), iters=3)
+        train(ctx, trainable, regression_step(ctx, model), LoopSpec(3))
 
 
 def test_the_finite_check_agrees_with_the_elementwise_test_on_hard_cases():

@@ -1,31 +1,28 @@
 """Under a time budget the turntables take what is left after the test views: counts by hand, and the
-probe frame that prices them against a fake clock."""
-
-import time
-from types import SimpleNamespace
+probe frame that prices them against a fake clock (the budget's own)."""
 
 import pytest
 import torch
-from omegaconf import OmegaConf
 
-from l3d_app.tasks import field_common
-from l3d_app.tasks.field_common import evals_after_training, turntable_frames_that_fit, write_turntables
+from l3d_app.render import previews
+from l3d_app.render.previews import reuse_probe_frames, write_turntables
+from l3d_app.runtime.budget import TimeBudget, frames_that_fit, views_in_validations
 
 
 def test_all_frames_without_a_budget():
-    assert turntable_frames_that_fit(36, None, 1.0) == 36
-    assert turntable_frames_that_fit(0, 5.0, 0.1) == 0
+    assert frames_that_fit(36, None, 1.0) == 36
+    assert frames_that_fit(0, 5.0, 0.1) == 0
 
 
 @pytest.mark.parametrize("left,expected", [(100.0, 36), (10.0, 36), (5.0, 24), (2.0, 9), (1.5, 0), (-3.0, 0)])
 def test_frames_that_fit_the_time_left(left, expected):
     """0.2048 s per frame (of all gifs); fewer than 8: none."""
-    assert turntable_frames_that_fit(36, left, 0.2048) == expected
+    assert frames_that_fit(36, left, 0.2048) == expected
 
 
 def test_a_short_turntable_is_kept_whole_when_it_fits():
-    assert turntable_frames_that_fit(4, 1.0, 0.2048) == 4      # 4 asked, 4 fit (0.82 s)
-    assert turntable_frames_that_fit(4, 0.5, 0.2048) == 0      # 2 fit: fewer than asked and than 8
+    assert frames_that_fit(4, 1.0, 0.2048) == 4      # 4 asked, 4 fit (0.82 s)
+    assert frames_that_fit(4, 0.5, 0.2048) == 0      # 2 fit: fewer than asked and than 8
 
 
 class _Orbit:
@@ -41,51 +38,27 @@ class _Orbit:
         return _Orbit(len(range(self.n)[index]) if isinstance(index, slice) else 1)
 
 
-class _Watch:
-    """The task's stopwatch on the fake clock: ``start`` seconds, then whatever the frames cost."""
-
-    def __init__(self, start, clock):
-        self.start, self.clock = start, clock
-
-    @property
-    def elapsed(self):
-        return self.start + self.clock["t"]
-
-
-class _Log:
-    def __init__(self):
-        self.notes = []
-
-    def text(self, tag, value):
-        self.notes.append((tag, value))
-
-
 def _run(monkeypatch, tmp_path, elapsed, budget=590.0, asked=36, encode=0.0):
     """Two gifs whose frames cost 0.125 s each to render and ``encode`` s each to GIF-encode on a fake
-    clock: one probe frame of both = 0.25 s + 2 x ``encode``."""
-    clock = {"t": 0.0}
-    monkeypatch.setattr(time, "perf_counter", lambda: clock["t"])
-    monkeypatch.setattr(field_common, "turntable_orbit", lambda cfg, data, n, device: _Orbit(n))
-    written = []
-    import l3d_app.render.turntable as turntable
-    import l3d_app.runtime.media as media
-    monkeypatch.setattr(turntable, "write_turntable", lambda path, fn, cams, fps: written.append((path.name, cams.n)))
-    real_gif_bytes = media.gif_bytes
+    clock that reads ``elapsed`` at the start: one probe frame of both = 0.25 s + 2 x ``encode``."""
+    clock = {"t": float(elapsed)}
+    written, notes = [], []
+    monkeypatch.setattr(previews, "write_turntable", lambda path, fn, cams, fps: written.append((path.name, cams.n)))
+    real_gif_bytes = previews.gif_bytes
 
     def timed_gif_bytes(frames, fps):
         clock["t"] += encode * len(frames)
         return real_gif_bytes(frames, fps)
-    monkeypatch.setattr(media, "gif_bytes", timed_gif_bytes)
+    monkeypatch.setattr(previews, "gif_bytes", timed_gif_bytes)
 
     def frames_fn(cams):
         clock["t"] += 0.125 * cams.n
         return torch.full((cams.n, 4, 4, 3), 0.5)
 
-    ctx = SimpleNamespace(stopwatch=_Watch(elapsed, clock), logger=_Log(), device="cpu",
-                          path=lambda name: tmp_path / name)
-    cfg = OmegaConf.create({"gif_frames": asked, "time_budget": budget, "fps": 12})
-    frames = write_turntables(cfg, ctx, None, {"render.gif": frames_fn, "geometry.gif": frames_fn})
-    return frames, written, ctx.logger.notes
+    timer = TimeBudget(budget, clock=lambda: clock["t"], note=lambda tag, text: notes.append((tag, text)))
+    frames = write_turntables({tmp_path / "render.gif": frames_fn, tmp_path / "geometry.gif": frames_fn}, _Orbit,
+                              asked, 12.0, timer)
+    return frames, written, notes
 
 
 def test_the_probe_frames_price_the_turntables(monkeypatch, tmp_path):
@@ -124,7 +97,6 @@ def test_the_probe_frames_are_reused_where_the_orbit_holds_them(n, p):
     """An orbit of n frames with p probe frames rendered first: the same frames as rendering all n
     (each frame a function of its camera), and only n - p of them rendered again."""
     from l3d_app.render.turntable import orbit_cameras
-    from l3d_app.tasks.field_common import reuse_probe_frames
     calls = []
 
     def frames_fn(cams):
@@ -141,7 +113,6 @@ def test_the_probe_frames_are_reused_where_the_orbit_holds_them(n, p):
 
 def test_an_orbit_without_the_probe_azimuths_is_refused():
     from l3d_app.render.turntable import orbit_cameras
-    from l3d_app.tasks.field_common import reuse_probe_frames
     fn = reuse_probe_frames(lambda c: torch.zeros(len(c), 1, 1, 3), torch.zeros(4, 1, 1, 3))
     with pytest.raises(ValueError, match="does not hold 4"):
         fn(orbit_cameras(10, 4.0, 30.0, 40.0, 8))
@@ -149,4 +120,4 @@ def test_an_orbit_without_the_probe_azimuths_is_refused():
 
 def test_the_loop_reserve_holds_the_test_views_only():
     """4 val views at one ray, 20 test views at 2 x 2 rays: 20 x 4 / 4 = 20 validations (no gif frames)."""
-    assert evals_after_training(4, 20, 2, 1) == pytest.approx(20.0)
+    assert views_in_validations(4, 20, 2, 1) == pytest.approx(20.0)

@@ -215,9 +215,9 @@ def test_tensorboard_shows_where_the_time_budget_has_moved_the_schedules(compose
     step (step * iters / steps = 20)."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
     from l3d_app.app import RunInterrupted
-    from l3d_app.runtime import training
+    from l3d_app.runtime.budget import TimeBudget
 
-    monkeypatch.setattr(training._LoopClock, "predicted_steps", lambda self, *a: 20.0)
+    monkeypatch.setattr(TimeBudget, "predicted_steps", lambda self, *a: 20.0)
     monkeypatch.setenv("L3D_STOP_AT_STEP", "15")
     cfg = compose("task=volsdf", *[o for o in TINY if not o.startswith("tensorboard")], "tensorboard=true",
                   f"data.cache_dir={tmp_path / 'cache'}", "iters=40", "eval_every=40", "batch_rays=64",

@@ -13,7 +13,7 @@ loss, metric or data module. :func:`svr_loss` picks the loss by the decoder's ``
   ``views_per_step`` random supervision cameras per object; ``w_mask`` x BCE(mask logits,
   silhouette) + ``w_depth`` x L1(depth) over pixels both the truth and the render cover.
 
-``batch`` holds what :func:`l3d_app.tasks.svr_common.make_batch` gives: images (B, H, W, 3),
+``batch`` holds what :func:`l3d_app.pipelines.svr.make_batch` gives: images (B, H, W, 3),
 points (B, P, 3), voxels (B, R, R, R), occ_points (B, Q, 3), occ_labels (B, Q), depth
 (B, S, H, W) and the S depth_cameras. Random draws use ``generator`` (a CPU generator,
 drawn on the CPU and moved: :mod:`l3d_app.runtime.random`).

@@ -1,2 +1,3 @@
-"""Pipelines: library code that composes the middle layer (render, models, losses, metrics, data,
-strategies) for several tasks, with plain arguments (no Hydra): a task wires a pipeline to its config."""
+"""Pieces composed from the middle layer that several tasks share: a method family's training and
+evaluation, views scored against images, a finished run's renderer. Plain arguments, no config
+objects: the tasks read their configs and call these."""

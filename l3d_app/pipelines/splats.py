@@ -30,8 +30,8 @@ from l3d_app.metrics.image import psnr, ssim
 from l3d_app.models.gaussians import GaussianModel, colors_from_views, init_from_points
 from l3d_app.render.gaussians.coverage import shrink_to_coverage
 from l3d_app.render.gaussians.panels import colorize_depth, error_map, side_by_side
-from l3d_app.runtime.horizon import Horizon
-from l3d_app.runtime.lr_schedules import exponential, on_horizon
+from l3d_app.runtime.budget import TimeBudget
+from l3d_app.runtime.lr_schedules import exponential
 from l3d_app.runtime.random import rand, randint, randn
 
 SURFEL_THICKNESS = 1e-3     # a surfel's third scale over its first (the disk's thickness for the strategies)
@@ -79,12 +79,11 @@ def scene_extent(cams, margin: float) -> float:
 
 
 def splat_optimizer(model: GaussianModel, background: torch.nn.ParameterDict, lr: Mapping[str, float],
-                    extent: float, adam_eps: float, lr_decay_steps: int, horizon: Optional[Horizon] = None
-                    ) -> Tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
+                    extent: float, adam_eps: float, lr_decay_steps: int) -> Tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LambdaLR]:
     """Adam over the splats' parameter groups (named as the strategies expect: ``means`` first, at
     ``lr.means`` x ``extent`` decayed to ``lr.means_final`` over ``lr_decay_steps``; ``scales``,
     ``quats``, ``opacity``, ``sh_dc``, ``sh_rest``; ``background`` when it is learnt) and the
-    LambdaLR of the decay (read on ``horizon``'s nominal steps when given)."""
+    LambdaLR of the decay."""
     groups = [("means", model.means, float(lr["means"]) * extent), ("scales", model.log_scales, float(lr["scales"])),
               ("quats", model.quats, float(lr["quats"])), ("opacity", model.opacity_logits, float(lr["opacity"])),
               ("sh_dc", model.sh_dc, float(lr["sh_dc"])), ("sh_rest", model.sh_rest, float(lr["sh_rest"]))]
@@ -94,7 +93,6 @@ def splat_optimizer(model: GaussianModel, background: torch.nn.ParameterDict, lr
     opt = torch.optim.Adam([{"params": [p], "lr": r, "name": n} for n, p, r in groups], eps=float(adam_eps),
                            fused=True)
     decay = exponential(float(lr["means_final"]) / float(lr["means"]), int(lr_decay_steps))
-    decay = decay if horizon is None else on_horizon(decay, horizon)
     return opt, torch.optim.lr_scheduler.LambdaLR(opt, [decay] + [lambda s: 1.0] * (len(groups) - 1))
 
 
@@ -102,27 +100,23 @@ class SplatSteps:
     """The per-step work both splat tasks share (see the module docstring).
 
     Args: model, optimiser, strategy (built, initialised); train_views (T,) indices; images
-        (V, H, W, 3); generator; ssim_lambda; sh_degree, sh_every; horizon: the schedules' nominal
-        steps (None: by step).
-    ``info`` is the strategy's bookkeeping (a task may add ``schedule``, ``until_scale``);
+        (V, H, W, 3); generator; ssim_lambda; sh_degree, sh_every.
+    ``info`` is the strategy's bookkeeping;
     ``step_times`` (wall, CPU seconds per step) is a list a task may checkpoint.
     """
 
     def __init__(self, model, optimizer, strategy, train_views: torch.Tensor, images: torch.Tensor,
-                 generator: Optional[torch.Generator], ssim_lambda: float, sh_degree: int, sh_every: int,
-                 horizon: Optional[Horizon] = None):
+                 generator: Optional[torch.Generator], ssim_lambda: float, sh_degree: int, sh_every: int):
         self.model, self.opt, self.strategy = model, optimizer, strategy
         self.train_views, self.images, self.generator = train_views, images, generator
         self.ssim_lambda, self.sh_degree, self.sh_every = float(ssim_lambda), int(sh_degree), int(sh_every)
-        self.horizon = horizon
         H, W = images.shape[1:3]
         self.info: Dict[str, object] = {"width": W, "height": H}
         self.step_times: List[Tuple[float, float]] = []
 
     def degree(self, step: int) -> int:
-        """The SH degree at ``step``: one more every ``sh_every`` (nominal) steps up to ``sh_degree``."""
-        nominal = step if self.horizon is None else int(self.horizon.nominal(step))
-        return min(self.sh_degree, nominal // self.sh_every)
+        """The SH degree at ``step``: one more every ``sh_every`` steps up to ``sh_degree``."""
+        return min(self.sh_degree, step // self.sh_every)
 
     def begin(self) -> int:
         """Start timing a step; returns the training view it renders (drawn at random)."""
@@ -143,14 +137,12 @@ class SplatSteps:
         self.strategy.step_pre_backward(self.model, self.opt, step, self.info)
         return loss if reg is None else loss + reg
 
-    def steps_left(self, step: int, iters: int, seconds_left: Optional[float] = None) -> int:
-        """Steps after ``step`` to ``iters``, or fewer where ``seconds_left`` (the budget's, None: no
-        budget) ends the run sooner at the mean wall seconds of the latest 50 steps."""
+    def steps_left(self, step: int, iters: int, budget: TimeBudget) -> int:
+        """Steps after ``step`` to ``iters``, or fewer where the time ``budget`` ends the run sooner at
+        the mean wall seconds of the latest 50 steps (:meth:`TimeBudget.steps_that_fit`)."""
         left = int(iters) - (step + 1)
-        recent = [t for t, _ in self.step_times[-50:]]
-        if seconds_left is not None and recent:
-            left = min(left, int(seconds_left * len(recent) / max(sum(recent), 1e-9)))
-        return left
+        fit = budget.steps_that_fit([t for t, _ in self.step_times[-50:]])
+        return left if fit is None else min(left, fit)
 
     def after_step(self, step: int, steps_left: int) -> Dict[str, float]:
         """After the optimiser step: the strategy's densification (``steps_left``: steps the run still

@@ -1,4 +1,4 @@
-"""Small matplotlib charts as images: a confusion matrix and a line plot (H, W, 3) in [0, 1]."""
+"""Small charts as images (H, W, 3) in [0, 1]: a confusion matrix and a line plot (matplotlib), a grid of images."""
 
 from __future__ import annotations
 
@@ -63,3 +63,13 @@ def line_plot(x: Sequence[float], y: Sequence[float], xlabel: str, ylabel: str, 
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
     return _figure_image(fig)
+
+
+def image_grid(images: torch.Tensor, cols: int, pad: int = 1, value: float = 1.0) -> torch.Tensor:
+    """Tile (N, 3, H, W) images into one (rows*(H+pad)-pad, cols*(W+pad)-pad, 3) image."""
+    N, C, H, W = images.shape
+    rows = -(-N // cols)
+    canvas = torch.full((rows * cols, C, H + pad, W + pad), value, dtype=images.dtype)
+    canvas[:N, :, :H, :W] = images.detach().cpu()
+    grid = canvas.view(rows, cols, C, H + pad, W + pad).permute(0, 3, 1, 4, 2)
+    return grid.reshape(rows * (H + pad), cols * (W + pad), C)[:-pad or None, :-pad or None]

@@ -3,7 +3,7 @@
 :func:`render_views` renders cameras through any ``render_fn(origins, dirs) -> {"color",
 "depth", "opacity"}`` in chunks (optionally ``supersample``^2 rays per pixel, averaged);
 :func:`evaluation_picture` is the picture every evaluation logs
-(``l3d_app/tasks/field_common.py: evaluate_views`` adds the scores):
+(:func:`l3d_app.pipelines.views.evaluate_views` adds the scores):
 one row per view, ``prediction | truth | |error| (x4, clamped) | depth`` (depth: white near,
 dark far over pixels with opacity > 0.5, black elsewhere).
 """
@@ -17,6 +17,7 @@ import torch
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import camera_rays, supersampled_rays
 from l3d_app.render.volume.renderer import render_rays_chunked
+from l3d_app.runtime.progress import progress
 
 RenderFn = Callable[[torch.Tensor, torch.Tensor], Dict[str, torch.Tensor]]
 
@@ -59,3 +60,35 @@ def evaluation_picture(pred: torch.Tensor, target: torch.Tensor, depth: Optional
             cols.append(depth_picture(depth[i], opacity[i]))
         rows.append(torch.cat(cols, dim=1))
     return torch.cat(rows, dim=0).cpu()
+
+
+def panel_frames(out: Dict[str, torch.Tensor], panels) -> torch.Tensor:
+    """(N, H, W * len(panels), 3) frames in [0, 1] of ``panels`` (any of colour, depth, alpha) side by
+    side, from ``out``'s color (N, H, W, 3), depth and alpha (N, H, W); depth: grey over covered
+    pixels (alpha > 0.5), white near, normalised by its 2% and 98% quantiles over all frames."""
+    alpha = out["alpha"].clamp(0, 1)
+    depth = out["depth"] / alpha.clamp_min(1e-6)
+    hit = alpha > 0.5
+    if bool(hit.any()):
+        q = torch.quantile(depth[hit].float()[:1_000_000], torch.tensor([0.02, 0.98]))
+        lo, hi = float(q[0]), float(q[1])
+    else:
+        lo, hi = 0.0, 1.0
+    gray = torch.where(hit, (1.0 - 0.8 * (depth - lo) / max(hi - lo, 1e-6)).clamp(0.2, 1.0), torch.zeros_like(depth))
+    parts = {"color": out["color"].clamp(0, 1), "depth": gray[..., None].expand(*gray.shape, 3),
+             "alpha": alpha[..., None].expand(*alpha.shape, 3)}
+    return torch.cat([parts[p] for p in panels], dim=2)
+
+
+@torch.no_grad()
+def render_frames(renderer, mesh, cams: Cameras, batch: int, desc: str,
+                  keys=("image", "alpha", "depth")) -> Dict[str, torch.Tensor]:
+    """Render ``cams`` in batches of ``batch`` views; returns the ``keys`` outputs
+    stacked over all views, on the CPU: image (N, H, W, 3), alpha (N, H, W), depth (N, H, W).
+    """
+    chunks: Dict[str, list] = {k: [] for k in keys}
+    for start in progress(range(0, len(cams), batch), desc=desc):
+        out = renderer(mesh, cams[start:start + batch])
+        for k in keys:
+            chunks[k].append(out[k].detach().cpu())
+    return {k: torch.cat(v) for k, v in chunks.items()}

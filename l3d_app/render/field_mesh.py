@@ -45,7 +45,6 @@ def _on_grid(level_fn: Callable[[torch.Tensor], torch.Tensor]) -> Callable[[torc
     return lambda p: level_fn(p.reshape(-1, 3)).reshape(p.shape[:-1])
 
 
-MESH_PRICED_AT = 128     # the marching-cubes resolution a task's mesh seconds (its config) were measured at
 PROBE_RESOLUTION = 64    # the grid timed to price a level function per point: 262,144 points
 
 
@@ -53,31 +52,11 @@ PROBE_RESOLUTION = 64    # the grid timed to price a level function per point: 2
 def seconds_per_grid_point(level_fn: Callable[[torch.Tensor], torch.Tensor], box, resolution: int = PROBE_RESOLUTION,
                            device=None) -> float:
     """Wall seconds per point of ``level_fn`` ((N, 3) -> (N,)) evaluated as :func:`extract_mesh` evaluates
-    it, measured once on a ``resolution``^3 grid over ``box`` ((lo, hi), world units)."""
+    it, measured once on a ``resolution``^3 grid over ``box`` ((lo, hi), world units): what
+    :meth:`~l3d_app.runtime.budget.TimeBudget.keep_mesh` prices a mesh at another resolution with."""
     start = time.perf_counter()
     evaluate_grid(_on_grid(level_fn), list(box[0]), list(box[1]), int(resolution), device=device)
     return (time.perf_counter() - start) / int(resolution) ** 3
-
-
-def mesh_seconds_at(resolution: int, seconds_at_128: float, seconds_per_point: float) -> float:
-    """Seconds to keep for a mesh step at ``resolution`` whose price at :data:`MESH_PRICED_AT` is
-    ``seconds_at_128`` (a task's config: about twice its measurement): that price plus twice the grid's
-    extra points at ``seconds_per_point`` (twice, like the price itself: the culling and colouring grow
-    with the mesh too; ``docs/measured/time_budget.md``); fewer points, less time; never below 0 s."""
-    extra_points = int(resolution) ** 3 - MESH_PRICED_AT ** 3
-    return max(0.0, float(seconds_at_128) + 2.0 * float(seconds_per_point) * extra_points)
-
-
-def priced_mesh_seconds(resolution: int, seconds_at_128: float, level_fn: Callable[[torch.Tensor], torch.Tensor],
-                        box, time_budget: float, device=None) -> Tuple[float, Optional[float]]:
-    """(seconds a time-budgeted task keeps for its mesh step at ``resolution``, the measured seconds per
-    grid point or None): ``seconds_at_128`` as configured at :data:`MESH_PRICED_AT` or without a time
-    budget (nothing measured), else :func:`mesh_seconds_at` with ``level_fn`` timed by
-    :func:`seconds_per_grid_point`."""
-    if float(time_budget) <= 0 or int(resolution) == MESH_PRICED_AT:
-        return float(seconds_at_128), None
-    per_point = seconds_per_grid_point(level_fn, box, device=device)
-    return mesh_seconds_at(resolution, seconds_at_128, per_point), per_point
 
 
 def save_glb(mesh: Mesh, path) -> Path:

@@ -13,9 +13,9 @@ from typing import Callable, Dict, Optional, Sequence
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.cameras import Cameras
-from l3d_app.errors import UserError
 from l3d_app.render.evaluation import render_views
 from l3d_app.runtime.media import save_gif
 
@@ -67,6 +67,13 @@ def orbit_cameras(num_frames: int, distance: float, elevation: float, fov: float
     r = cams.R @ q.T                                                     # X_cam = R Q^T (X' - at) + t
     t = cams.t - (r @ at_t[:, None])[..., 0]
     return Cameras.from_fov(r, t, float(fov), int(image_size), int(image_size)).to(device)
+
+
+def data_orbit(data, frames: int, elevation: float, width: int, device=None) -> Cameras:
+    """``frames`` cameras orbiting the data's up axis (:func:`data_up`) at its cameras' mean distance
+    from the origin, ``elevation`` degrees, the data's field of view, ``width`` pixels square."""
+    return orbit_cameras(int(frames), float(data.cameras.centers().norm(dim=-1).mean()), float(elevation),
+                         float(data.cameras.fov()[0]), int(width), up=data_up(data), device=device)
 
 
 @torch.no_grad()

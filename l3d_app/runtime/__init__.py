@@ -7,6 +7,8 @@ from l3d_app.runtime import optim  # noqa: F401,E402  (registers OPTIMIZERS)
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "RunContext": "context",
     "Trainable": "training",
+    "LoopSpec": "training",
+    "TimeBudget": "budget",
     "train": "training",
     "log_test": "training",
     "build_optimizer": "optim",

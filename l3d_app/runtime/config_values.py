@@ -1,9 +1,10 @@
-"""Config lists read as the numbers or names a library function needs.
+"""Config values read as the numbers or names a library function needs, and checked.
 
 A knob such as ``background``, ``up`` or ``data.scene_box`` arrives as a list (an OmegaConf
 ``ListConfig`` is a sequence); a wrong length, a word among numbers, or a bare number where a
 list is due is one :class:`~l3d_app.errors.UserError` that names the knob, never Python's own
 "not enough values to unpack". One bare name where a list of names is due is a list of one.
+The ``require_*`` checks name the first of a mapping's keys whose value is out of range.
 """
 
 from __future__ import annotations
@@ -68,3 +69,28 @@ def config_words(value: Any, key: str) -> List[str]:
     if not isinstance(items, list) or not all(isinstance(v, str) for v in items):
         raise UserError(f"{key} must be a name or a list of names, got {shown(items)}")
     return items
+
+
+def require_positive(cfg, *keys: str) -> None:
+    """UserError naming the first of ``keys`` whose config value is not > 0."""
+    for key in keys:
+        value = cfg.get(key)
+        if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0:
+            raise UserError(f"{key} must be a positive number, got {value!r}")
+
+
+def require_fraction(cfg, *keys: str) -> None:
+    """UserError naming the first of ``keys`` whose config value is not a number in [0, 1]
+    (a probability, a decay)."""
+    for key in keys:
+        value = cfg.get(key)
+        if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
+            raise UserError(f"{key} must be a number in [0, 1], got {value!r}")
+
+
+def require_nonnegative(cfg, *keys: str) -> None:
+    """UserError naming the first of ``keys`` whose config value is not a number >= 0."""
+    for key in keys:
+        value = cfg.get(key)
+        if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+            raise UserError(f"{key} must be a number >= 0, got {value!r}")

@@ -1,4 +1,4 @@
-"""Images and animations on disk (PNG, GIF), written atomically."""
+"""Images and animations on disk (PNG, GIF, MP4), written atomically."""
 
 from __future__ import annotations
 
@@ -42,3 +42,19 @@ def save_png(path: os.PathLike, image: Frames) -> Path:
     with atomic_path(path) as tmp:
         imageio.imwrite(tmp, to_uint8(image), format="PNG")
     return Path(path)
+
+
+def save_mp4(path: os.PathLike, frames: Frames, fps: float) -> None:
+    """(N, H, W, 3) in [0, 1] -> H.264 mp4 (padded to even sizes), written atomically; needs imageio-ffmpeg."""
+    from l3d_app.errors import UserError
+
+    try:
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError as err:
+        raise UserError("mp4 output needs imageio-ffmpeg: pip install imageio-ffmpeg (or formats=[gif])") from err
+    x = to_uint8(frames)
+    ph, pw = x.shape[1] % 2, x.shape[2] % 2
+    x = np.pad(x, ((0, 0), (0, ph), (0, pw), (0, 0)), mode="edge")
+    with atomic_path(path) as tmp:
+        imageio.mimwrite(tmp, list(x), fps=float(fps), codec="libx264", macro_block_size=1,
+                         ffmpeg_log_level="error", output_params=["-pix_fmt", "yuv420p"])

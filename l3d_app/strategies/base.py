@@ -11,14 +11,12 @@ The training task calls, per run and per step::
 ``info`` is the render's bookkeeping: ``means2d`` (B, N, 2) pixels with its gradient after
 backward, ``radii`` (B, N) pixels (0 = culled), ``width``, ``height`` (pixels).
 ``info["schedule"]`` (optional) is ``(previous, now)``, the step counts on the task's nominal
-schedule that this step takes the run from and to (floats; :meth:`~l3d_app.runtime.horizon.Horizon.advance`:
-under a time budget that stops the run early, the whole schedule is compressed into the
-steps that fit); absent, ``(step, step + 1)``. A strategy reads its own schedule (start,
-until, every) through :meth:`Strategy.schedule` and
-:func:`~l3d_app.runtime.horizon.scheduled_event`, so that it follows the task's budget.
-``info["until_scale"]`` (optional, in ``(0, 1]``; gs_train's ``schedule=refine``: the steps the
-budget lets the run take over ``iters``) scales the step at which the strategy's growth phase
-ends (:meth:`Strategy.phase_end`), its events staying on the steps of ``info["schedule"]``.
+schedule that this step takes the run from and to (floats, e.g. a
+:class:`~l3d_app.runtime.horizon.Horizon`'s :meth:`~l3d_app.runtime.horizon.Horizon.advance`);
+absent, ``(step, step + 1)``. A strategy reads its own schedule (start, until, every) through
+:meth:`Strategy.schedule` and :func:`~l3d_app.runtime.horizon.scheduled_event`.
+``info["steps_left"]`` (optional) is how many steps the run has after this one (to ``iters``, or
+fewer where the time budget ends it sooner).
 ``generator`` is the run's CPU generator (draw with :mod:`l3d_app.runtime.random`).
 ``step`` is 0-based (the step just taken). A strategy may resize the model's parameters;
 it must then swap the new ``Parameter`` objects into the optimiser
@@ -61,11 +59,6 @@ class Strategy:
         else ``(step, step + 1)``: 0-based ``step`` just taken)."""
         previous, now = info.get("schedule", (step, step + 1))
         return float(previous), float(now)
-
-    @staticmethod
-    def phase_end(until: float, info: Dict[str, Any]) -> float:
-        """The step at which the growth phase ends: ``until`` x ``info["until_scale"]`` (1 when absent)."""
-        return until * float(info.get("until_scale", 1.0))
 
     def state_dict(self) -> Dict[str, Any]:
         return {}

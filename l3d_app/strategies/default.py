@@ -51,18 +51,14 @@ class DefaultStrategy(Strategy):
             be scored nearly untrained when a time budget stops the run just after it.
         max_gaussians: cap on the count.
 
-    The steps above are those of the task's nominal schedule (``info["schedule"]``,
-    :mod:`l3d_app.strategies.base`): by step by default; with gs_train's ``schedule=budget``
-    a time budget that stops the run early compresses it, so that the densification phase,
-    the resets and the refinement after them keep their shares of the run; with
-    ``schedule=refine`` only ``until`` is scaled (densifying and resets stay every ``every`` /
-    ``opacity_reset_every`` steps, the phase ends sooner and leaves its share for refinement).
+    The steps above are those of the task's schedule (``info["schedule"]``,
+    :mod:`l3d_app.strategies.base`): by step by default.
     """
 
-    def __init__(self, start: int = 100, until: int = 2000, every: int = 100, grad_threshold: float = 2e-4,
-                 percent_dense: float = 0.01, min_opacity: float = 0.005, max_screen_size: float = 0.0,
-                 max_world_scale: float = 0.1, opacity_reset_every: int = 0, reset_value: float = 0.01,
-                 max_gaussians: int = 200_000, reset_min_steps_left: int = 0, densify_min_steps_left: int = 0):
+    def __init__(self, start: int = 100, until: int = 3000, every: int = 100, grad_threshold: float = 1e-4,
+                 percent_dense: float = 0.01, min_opacity: float = 0.005, max_screen_size: float = 20.0,
+                 max_world_scale: float = 0.1, opacity_reset_every: int = 1000, reset_value: float = 0.01,
+                 max_gaussians: int = 100_000, reset_min_steps_left: int = 300, densify_min_steps_left: int = 100):
         super().__init__()
         if int(every) <= 0:
             raise UserError(f"strategy.every must be > 0, got {every}")
@@ -97,8 +93,8 @@ class DefaultStrategy(Strategy):
     # -- hooks ---------------------------------------------------------------------------------
     def step_post_backward(self, model, optimizer, step: int, info: Dict[str, Any],
                            generator: Optional[torch.Generator] = None) -> Dict[str, float]:
-        previous, done = self.schedule(step, info)      # (step, step + 1) unless a time budget compresses it
-        until = self.phase_end(self.until, info)         # sooner under gs_train's schedule=refine
+        previous, done = self.schedule(step, info)      # (step, step + 1) unless the task's schedule says otherwise
+        until = self.until
         logs: Dict[str, float] = {}
         grad = info["means2d"].grad
         if previous >= until or grad is None:

@@ -88,9 +88,9 @@ class MCMCStrategy(Strategy):
 
     def step_post_backward(self, model, optimizer, step: int, info: Dict[str, Any],
                            generator: Optional[torch.Generator] = None) -> Dict[str, float]:
-        previous, done = self.schedule(step, info)     # (step, step + 1) unless a time budget compresses it
+        previous, done = self.schedule(step, info)     # (step, step + 1) unless the task's schedule says otherwise
         logs: Dict[str, float] = {}
-        if scheduled_event(previous, done, self.every, first=self.start + 1, last=self.phase_end(self.until, info) - 1):
+        if scheduled_event(previous, done, self.every, first=self.start + 1, last=self.until - 1):
             logs["relocated"] = float(self.relocate(model, optimizer, generator))
             logs["added"] = float(self.grow(model, optimizer, generator))
             logs["n"] = float(model.num)

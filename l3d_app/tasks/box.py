@@ -35,11 +35,11 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.geometry.rays import camera_rays
 from l3d_app.metrics.image import psnr
-from l3d_app.registry import DATASETS, SAMPLERS, TASKS
 from l3d_app.models.sdf_box import SDFBox
-from l3d_app.render.volume.diagnostics import depth_colormap
+from l3d_app.registry import DATASETS, SAMPLERS, TASKS
 from l3d_app.render.evaluation import render_views
 from l3d_app.render.turntable import data_up, orbit_cameras, write_turntable
+from l3d_app.render.volume.diagnostics import depth_colormap
 from l3d_app.render.volume.renderer import render_rays_chunked
 from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.media import save_png
@@ -47,7 +47,7 @@ from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.paths import resolve_path
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.common import require_positive
+from l3d_app.tasks.common import loop_spec, require_positive
 
 
 @TASKS.register("box")
@@ -96,9 +96,7 @@ def box(cfg, ctx) -> dict:
     with torch.no_grad():
         before = render_views(1)
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step_fn, iters, eval_fn=eval_fn, eval_every=int(cfg.eval_every),
-                       checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume),
-                       desc="box")
+        result = train(ctx, trainable, step_fn, loop_spec(cfg, "box"), eval_fn=eval_fn)
     with torch.no_grad():
         final = render_views(1)
         final_psnr = float(psnr(final, target))

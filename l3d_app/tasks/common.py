@@ -1,4 +1,4 @@
-"""Pieces shared by tasks: input checks and batched rendering with a progress bar."""
+"""Pieces shared by tasks: config checks and the training loop's spec from a config."""
 
 from __future__ import annotations
 
@@ -11,17 +11,11 @@ from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.marching_cubes import require_grid_memory
 from l3d_app.registry import CAMERA_PATHS, RENDERERS
 from l3d_app.render.field_mesh import FIELD_MESH_FORMATS
-from l3d_app.runtime.config_values import config_words
+from l3d_app.runtime.config_values import (config_words, require_fraction,  # noqa: F401  (the tasks' checks)
+                                            require_nonnegative, require_positive)
 from l3d_app.runtime.device import available_host_memory
 from l3d_app.runtime.progress import progress
-
-
-def require_positive(cfg, *keys: str) -> None:
-    """UserError naming the first of ``keys`` whose config value is not > 0."""
-    for key in keys:
-        value = cfg.get(key)
-        if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0:
-            raise UserError(f"{key} must be a positive number, got {value!r}")
+from l3d_app.runtime.training import LoopSpec
 
 
 def require_fade_end(value, key: str) -> None:
@@ -29,23 +23,6 @@ def require_fade_end(value, key: str) -> None:
     :func:`~l3d_app.losses.free_space.fade_to_zero` fades reaches 0 (``key`` names it in the message)."""
     if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1):
         raise UserError(f"{key} must be null or lie in (0, 1] (a fraction of the steps), got {value!r}")
-
-
-def require_fraction(cfg, *keys: str) -> None:
-    """UserError naming the first of ``keys`` whose config value is not a number in [0, 1]
-    (a probability, a decay)."""
-    for key in keys:
-        value = cfg.get(key)
-        if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
-            raise UserError(f"{key} must be a number in [0, 1], got {value!r}")
-
-
-def require_nonnegative(cfg, *keys: str) -> None:
-    """UserError naming the first of ``keys`` whose config value is not a number >= 0."""
-    for key in keys:
-        value = cfg.get(key)
-        if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
-            raise UserError(f"{key} must be a number >= 0, got {value!r}")
 
 
 def require_mesh_resolution(cfg) -> None:
@@ -69,12 +46,6 @@ def require_mesh_formats(cfg, key: str = "mesh_formats", allowed: Sequence[str] 
                         f"{', '.join(allowed)}, got {value!r}")
 
 
-RUN_KEYS_NONNEGATIVE = ("time_budget", "reserve", "mesh_reserve", "gif_frames", "turntable_size", "eval_views", "checkpoint_every")
-"""Run and output knobs that many tasks share, where 0 means none / off / the default and a
-negative value means nothing."""
-RUN_KEYS_POSITIVE = ("fps",)
-
-
 def check_output_knobs(cfg) -> None:
     """Build the renderers (``renderer``, ``point_renderer``) and the camera path (``camera``)
     that ``cfg`` names, once, and drop them: a bad shading, radius unit, background or path
@@ -87,43 +58,11 @@ def check_output_knobs(cfg) -> None:
         CAMERA_PATHS.build(cfg.camera)
 
 
-def require_run_keys(cfg) -> None:
-    """Check the shared run / output knobs a task's config has (``RUN_KEYS_*``) before the task
-    starts, so a bad turntable size or frame rate fails now, not after training."""
-    require_nonnegative(cfg, *(k for k in RUN_KEYS_NONNEGATIVE if k in cfg))
-    require_positive(cfg, *(k for k in RUN_KEYS_POSITIVE if k in cfg))
-
-
-@torch.no_grad()
-def render_frames(renderer, mesh, cams: Cameras, batch: int, desc: str,
-                  keys=("image", "alpha", "depth")) -> Dict[str, torch.Tensor]:
-    """Render ``cams`` in batches of ``batch`` views; returns the ``keys`` outputs
-    stacked over all views, on the CPU: image (N, H, W, 3), alpha (N, H, W), depth (N, H, W).
-    """
-    chunks: Dict[str, list] = {k: [] for k in keys}
-    for start in progress(range(0, len(cams), batch), desc=desc):
-        out = renderer(mesh, cams[start:start + batch])
-        for k in keys:
-            chunks[k].append(out[k].detach().cpu())
-    return {k: torch.cat(v) for k, v in chunks.items()}
-
-
-def background_parameter(mode, data) -> torch.nn.ParameterDict:
-    """What lies behind the scene box: one RGB composited behind every ray or splat.
-
-    Args:
-        mode: ``learn_background`` knob: ``auto`` (learn when ``data.background_known`` is
-            False, i.e. a real capture), ``true`` or ``false``.
-        data: a multi-view dataset with ``background`` (3,) in [0, 1] (the loader's estimate
-            when not known).
-    Returns:
-        ``ParameterDict`` with ``"rgb"`` (3,), starting at ``data.background``; it requires
-        grad only when learnt (callers clamp it to [0, 1] when rendering and pass it to the
-        optimiser only when ``requires_grad``).
-    """
-    key = str(mode).lower()
-    choices = {"auto": not getattr(data, "background_known", True), "true": True, "false": False}
-    if key not in choices:
-        raise UserError(f"learn_background must be auto, true or false, got {mode!r}")
-    rgb = torch.nn.Parameter(data.background.clone().float(), requires_grad=choices[key])
-    return torch.nn.ParameterDict({"rgb": rgb})
+def loop_spec(cfg, desc: str, iters: int = 0, **kwargs) -> LoopSpec:
+    """The training loop's spec from a task's config: ``iters`` (0: ``cfg.iters``), ``eval_every``,
+    ``checkpoint_every`` and ``resume`` where the config has them, the bar's ``desc``; ``kwargs`` add
+    or override :class:`~l3d_app.runtime.training.LoopSpec` fields."""
+    known = {k: cfg[k] for k in ("eval_every", "checkpoint_every", "resume") if cfg.get(k) is not None}
+    spec = {"eval_every": int(known.get("eval_every", 0)), "checkpoint_every": int(known.get("checkpoint_every", 0)),
+            "resume": bool(known.get("resume", False)), **kwargs}
+    return LoopSpec(int(iters or cfg.iters), desc=desc, **spec)

@@ -24,9 +24,10 @@ from l3d_app.geometry.dolly_framing import dolly_cameras, extent_distances
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.mesh_parts import largest_part_mask, submesh
 from l3d_app.registry import DATASETS, RENDERERS, TASKS
+from l3d_app.render.evaluation import render_frames
 from l3d_app.runtime.annotate import label_frames
 from l3d_app.runtime.media import save_gif, save_png
-from l3d_app.tasks.common import render_frames, require_positive
+from l3d_app.tasks.common import require_positive
 
 
 def composite_by_depth(a: dict, b: dict, background: torch.Tensor) -> torch.Tensor:

@@ -13,10 +13,12 @@ from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.pointcloud import PointCloud
 from l3d_app.geometry.sampling import sample_points_on_mesh
 from l3d_app.registry import CAMERA_PATHS, DATASETS, RENDERERS
+from l3d_app.render.evaluation import render_frames
+from l3d_app.render.previews import frames_within_budget
+from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.random import held_out_seed
-from l3d_app.tasks.budget_common import frames_within_budget
-from l3d_app.tasks.common import check_output_knobs, render_frames, require_nonnegative, require_positive
+from l3d_app.tasks.common import check_output_knobs, require_nonnegative, require_positive
 
 Shape = Union[Mesh, PointCloud, None]
 
@@ -79,7 +81,7 @@ def side_by_side_turntable(cfg, ctx, fitted: Shape, target: Shape, name: str) ->
         with torch.no_grad():
             return torch.cat([_render(cfg, fitted, c, "render fit"), _render(cfg, target, c, "render target")], dim=2)
 
-    frames = frames_within_budget(ctx, cams, render, f"{name.rsplit('.', 1)[0]}/budget")
+    frames = frames_within_budget(TimeBudget.of(ctx), cams, render, f"{name.rsplit('.', 1)[0]}/budget")
     if frames is None:
         return None
     save_gif(ctx.path(name), frames, fps=float(cfg.fps))

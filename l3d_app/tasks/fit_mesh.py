@@ -26,7 +26,9 @@ from l3d_app.losses.mesh_regularizers import edge_length, laplacian_smoothing, n
 from l3d_app.metrics.chamfer import chamfer_distance
 from l3d_app.metrics.fscore import fscore
 from l3d_app.registry import TASKS
+from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.training import Trainable, log_test, train
+from l3d_app.tasks.common import loop_spec
 from l3d_app.tasks.fit_common import (check_fit_knobs, eval_generator, held_out_surface, load_target_mesh,
                                       side_by_side_turntable)
 
@@ -73,9 +75,8 @@ def fit_mesh(cfg, ctx) -> dict:
         return {"chamfer": float(chamfer_distance(pts, truth)), **fscore(pts, truth, t)}
 
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step, int(cfg.iters), lambda _i: evaluate_on("val"), int(cfg.eval_every),
-                       int(cfg.checkpoint_every), bool(cfg.resume), desc="fit_mesh",
-                       reserve_evals=1.0)      # the test figures cost what a validation does
+        result = train(ctx, trainable, step, loop_spec(cfg, "fit_mesh"), lambda _i: evaluate_on("val"),
+                       budget=TimeBudget.of(ctx).keep_renders(1))      # the test figures cost what a validation does
     final = evaluate_on("test")
     log_test(ctx, final, result.step)
     with torch.no_grad():

@@ -19,6 +19,7 @@ from l3d_app.metrics.iou import iou
 from l3d_app.registry import LOSSES, TASKS
 from l3d_app.runtime.random import randn
 from l3d_app.runtime.training import Trainable, train
+from l3d_app.tasks.common import loop_spec
 from l3d_app.tasks.fit_common import check_fit_knobs, load_target_mesh, side_by_side_turntable
 
 
@@ -50,8 +51,7 @@ def fit_vox(cfg, ctx) -> dict:
         return {"iou": iou(occ, target), "occupied_cells": int(occ.sum())}
 
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step, int(cfg.iters), evaluate, int(cfg.eval_every),
-                       int(cfg.checkpoint_every), bool(cfg.resume), desc="fit_vox")
+        result = train(ctx, trainable, step, loop_spec(cfg, "fit_vox"), evaluate)
     occ = holder["logits"].detach() > 0
     try:
         fitted = occupancy_to_mesh(torch.sigmoid(holder["logits"].detach()), bounds)

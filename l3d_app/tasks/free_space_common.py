@@ -26,14 +26,16 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.losses.free_space import termination_distance
+from l3d_app.models.background import background_parameter
 from l3d_app.registry import MODELS, SAMPLERS
 from l3d_app.render.volume.free_space import FreeRays, free_distances
 from l3d_app.render.volume.radiance import render_field_rays
 from l3d_app.render.volume.samplers import ray_aabb
+from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import randint, randperm
-from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.common import background_parameter, require_fade_end, require_nonnegative, require_positive
+from l3d_app.runtime.training import LoopSpec, Trainable, train
+from l3d_app.tasks.common import require_fade_end, require_nonnegative, require_positive
 
 FILE = "free_space.pt"
 
@@ -105,7 +107,7 @@ def stage_deadline(time_budget: float, elapsed: float, eval_seconds: Optional[fl
         elapsed: the task's wall seconds so far.
         eval_seconds: one validation render of the initial field (s), the dearest an evaluation gets
             (a fuzzy surface skips no empty ray); None: unknown, only the third applies.
-        evals_after: the rendering after training in validations (``field_common.evals_after_training``).
+        evals_after: the rendering after training in validations (:func:`~l3d_app.runtime.budget.views_in_validations`).
         reserve: the task's other seconds after training (artefacts).
     Returns:
         ``min(budget / 3, elapsed + (budget - elapsed - final) / 2)`` with ``final = eval_seconds x
@@ -113,13 +115,8 @@ def stage_deadline(time_budget: float, elapsed: float, eval_seconds: Optional[fl
         takes at most half of what the final work leaves; None (skip the stage) when that leaves it
         under ``minimum`` seconds.
     """
-    if time_budget <= 0:
-        return 0.0
-    deadline = time_budget / 3.0
-    if eval_seconds is not None:
-        final = eval_seconds * (1.0 + evals_after) + reserve
-        deadline = min(deadline, elapsed + 0.5 * (time_budget - elapsed - final))
-    return deadline if deadline - elapsed >= minimum else None
+    budget = TimeBudget(time_budget, reserve, clock=lambda: elapsed, evals_after=evals_after)
+    return budget.stage_deadline(eval_seconds, minimum)
 
 
 def front_weight(cfg, covered: Optional[torch.Tensor]) -> float:
@@ -173,9 +170,9 @@ def fit_free_rays(cfg, ctx, data, box, origins: torch.Tensor, dirs: torch.Tensor
             logs["loss"], logs["front"] = logs["loss"] + w_front * front, front.detach()
         return logs
 
-    result = train(ctx, trainable, step_fn, int(cfg.steps), desc="free space (radiance field)",
-                   time_budget=float(deadline), reserve=0.0,
-                   log_prefix="free_space", checkpoint=False)
+    result = train(ctx, trainable, step_fn, LoopSpec(int(cfg.steps), desc="free space (radiance field)",
+                                                     log_prefix="free_space", checkpoint=False),
+                   budget=TimeBudget.of(ctx, seconds=float(deadline), reserve=0.0))
     if result.interrupted:
         return None
     model.eval()

@@ -33,15 +33,16 @@ from l3d_app.metrics.chamfer import chamfer_distance
 from l3d_app.metrics.fscore import fscore
 from l3d_app.models.sdf_net import SDFNetwork
 from l3d_app.registry import DATASETS, TASKS
+from l3d_app.render.previews import frames_within_budget
 from l3d_app.render.sdf.sphere_tracing import render_sdf_shaded
 from l3d_app.render.turntable import orbit_cameras
 from l3d_app.render.volume.renderer import render_rays_chunked
+from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint, randperm
 from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.budget_common import frames_within_budget
-from l3d_app.tasks.common import require_mesh_formats, require_mesh_resolution, require_nonnegative, require_positive
+from l3d_app.tasks.common import loop_spec, require_mesh_formats, require_mesh_resolution, require_nonnegative, require_positive
 
 
 @TASKS.register("neural_sdf")
@@ -94,10 +95,8 @@ def neural_sdf(cfg, ctx) -> dict:
         return {"surface_abs": float(net(val_points)[0].abs().mean())}
 
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn if n_val else None,
-                       eval_every=int(cfg.eval_every),
-                       checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="neural_sdf",
-                       reserve_evals=int(cfg.mesh_resolution) ** 3 / max(1, n_val))   # the mesh: the grid's points
+        budget = TimeBudget.of(ctx).keep_renders(int(cfg.mesh_resolution) ** 3, n_val)   # the mesh: the grid's points
+        result = train(ctx, trainable, step_fn, loop_spec(cfg, "neural_sdf"), eval_fn if n_val else None, budget)
     metrics: Dict[str, float] = {"iters": result.step, "n_params": sum(p.numel() for p in net.parameters()),
                                  "n_points": int(points.shape[0]),
                                  "val_surface_abs": (round(result.metrics["surface_abs"], 6)          # None: no validation
@@ -126,7 +125,7 @@ def neural_sdf(cfg, ctx) -> dict:
             o, d = camera_rays(c, normalize=True)
             return render_rays_chunked(lambda a, b: {"rgb": render_sdf_shaded(sdf, a, b, box)}, o, d, 8192)["rgb"]
 
-        frames = frames_within_budget(ctx, cams, render, "mesh_gif/budget")     # under a budget: what fits
+        frames = frames_within_budget(budget, cams, render, "mesh_gif/budget")     # under a budget: what fits
         if frames is not None:
             save_gif(ctx.path("mesh.gif"), frames, fps=float(cfg.fps))
     return metrics

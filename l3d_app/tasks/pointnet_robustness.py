@@ -29,12 +29,13 @@ from typing import Any, Dict, List
 import torch
 
 from l3d_app.errors import UserError
+from l3d_app.pipelines.point_nets import evaluate, fit, load_model, require_axis, rotations
 from l3d_app.registry import TASKS
 from l3d_app.runtime.config_values import config_floats, config_words
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.logger import RunLogger
 from l3d_app.runtime.seed import seed_everything
-from l3d_app.tasks.point_common import evaluate, fit, load_data, load_model, require_axis, rotations
+from l3d_app.tasks.point_common import load_data, training_spec
 
 
 def _table(title: str, header: str, rows: Dict[Any, float]) -> str:
@@ -52,8 +53,7 @@ def _model_for(cfg, ctx, kind: str):
             raise UserError(f"{kind}_checkpoint {path} holds a '{meta['kind']}' model")
         selected_on = str(meta.get("selected_on", "unknown"))
         if selected_on != "val":
-            note = (f"{kind}_checkpoint {path} does not say it was chosen on the validation split "
-                    "(a best.pt written before 2026-11-27 does not say; older ones were chosen on test)")
+            note = f"{kind}_checkpoint {path} does not say it was chosen on the validation split"
             print(f"l3d_app: note: {note}", file=sys.stderr)
             ctx.logger.text(f"{kind}/selected_on", note)
         return model, data, {"source": str(path), "selected_on": selected_on}
@@ -63,7 +63,7 @@ def _model_for(cfg, ctx, kind: str):
                          logger=RunLogger(sub, enabled=ctx.logger.writer is not None))
     sub.mkdir(parents=True, exist_ok=True)
     try:
-        model, info = fit(cfg, sub_ctx, data, kind)
+        model, info = fit(training_spec(cfg), sub_ctx, data, kind)
     finally:
         sub_ctx.logger.close()
     return model, data, {"source": str(sub / "best.pt"), "train_seconds": info["train_seconds"],

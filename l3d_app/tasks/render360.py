@@ -16,8 +16,9 @@ from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.mesh_colors import gradient_colors
 from l3d_app.geometry.sampling import sample_points_on_mesh
 from l3d_app.registry import CAMERA_PATHS, DATASETS, RENDERERS, TASKS
+from l3d_app.render.evaluation import render_frames
 from l3d_app.runtime.media import save_gif, save_png
-from l3d_app.tasks.common import check_output_knobs, render_frames, require_positive
+from l3d_app.tasks.common import check_output_knobs, require_positive
 
 
 def build_scene(cfg, device):

@@ -14,16 +14,14 @@ depth (expected depth over covered pixels, white = near, normalised over the who
 alpha. Writes ``path.mp4`` (imageio-ffmpeg), ``path.gif``, the cameras used as
 ``camera_path.json`` and ``metrics.json`` (frames, seconds, frames_per_second).
 
-The per-kind renderers below are thin adapters over the library's render functions (one
-``render(cams) -> {color, depth, alpha}`` each); a new trained kind adds one adapter.
+The run's renderer is :func:`l3d_app.pipelines.runs.run_renderer`; this task reads the run
+directory, builds the path and writes the frames.
 """
 
 from __future__ import annotations
 
 import time
-from typing import Callable, Dict
 
-import numpy as np
 import torch
 from omegaconf import OmegaConf
 
@@ -31,121 +29,28 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.camera_paths import (interpolate_cameras, orbit, read_camera_path, spiral,
                                            write_camera_path)
 from l3d_app.geometry.cameras import Cameras
-from l3d_app.geometry.rays import camera_rays
-from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
-from l3d_app.render.sdf.density_choice import choose_density
+from l3d_app.pipelines.runs import gaussian_renderer, run_renderer
+from l3d_app.registry import TASKS
+from l3d_app.render.evaluation import panel_frames
+from l3d_app.runtime.checkpoints import read_checkpoint
 from l3d_app.runtime.config_values import config_floats, config_words
-from l3d_app.runtime.files import atomic_path
-from l3d_app.runtime.media import save_gif, to_uint8
+from l3d_app.runtime.media import save_gif, save_mp4
 from l3d_app.runtime.paths import resolve_path
 from l3d_app.runtime.progress import progress
-from l3d_app.runtime.training import read_checkpoint
 
-Render = Callable[[Cameras], Dict[str, torch.Tensor]]
 PATHS = ("orbit", "spiral", "interp", "camera_path")
 PANELS = ("color", "depth", "alpha")
 
 
-# ------------------------------------------------------------ per-kind adapters
-def _field_renderer(fn, chunk: int, normalize: bool = True) -> Render:
-    """Render cameras with ``fn(origins, dirs)``; ``normalize``: unit directions (train_nerf) or
-    camera-Z = 1 directions (volsdf), as the task trained with."""
-    from l3d_app.render.volume.renderer import render_rays_chunked
-
-    def keep(o, d):
-        return {k: v for k, v in fn(o, d).items() if k in ("color", "depth", "opacity")}
-
-    def render(cams: Cameras) -> Dict[str, torch.Tensor]:
-        o, d = camera_rays(cams, normalize=normalize)
-        out = render_rays_chunked(keep, o, d, chunk)
-        return {"color": out["color"], "depth": out["depth"], "alpha": out["opacity"]}
-    return render
-
-
-def _background(state, data, device) -> torch.Tensor:
-    """(3,) the run's learnt background (``learn_background``) when it saved one, else the data's."""
-    saved = state["modules"].get("background", {}).get("rgb")
-    return (saved if saved is not None else data.background).to(device).float().clamp(0, 1)
-
-
-def _sampler(conf, state, box, device):
-    """The run's ray sampler (occupancy grid / SDF cache) with its checkpointed state."""
-    sampler = SAMPLERS.build(conf.sampler, scene_box=box).to(device)
-    saved = state.get("extra", {}).get("sampler")
-    if saved is not None and hasattr(sampler, "load_state_dict"):
-        sampler.load_state_dict(saved)
-    return sampler
-
-
-def _nerf(conf, state, data, device, chunk) -> Render:
-    from l3d_app.render.volume.radiance import render_field_rays
-
-    box = data.scene_box.tolist()
-    model = MODELS.build(conf.model, scene_box=box).to(device).eval()
-    model.load_state_dict(state["modules"]["field"])
-    sampler, background = _sampler(conf, state, box, device), _background(state, data, device)
-    return _field_renderer(lambda o, d: render_field_rays(model, o, d, sampler, background=background), chunk)
-
-
-def _volsdf(conf, state, data, device, chunk) -> Render:
-    return _field_renderer(volsdf_rays(conf, state, data, device), chunk, normalize=False)
-
-
-def volsdf_rays(conf, state, data, device):
-    """A volsdf run's ``fn(origins, dirs)`` (camera-Z = 1 directions), rendered as its evaluation does."""
-    from l3d_app.models.sdf_gradients import field_with_gradient
-    from l3d_app.render.sdf.volume import render_sdf_rays
-
-    box = data.scene_box.tolist()
-    model = MODELS.build(conf.model, scene_box=box).to(device).eval()
-    model.load_state_dict(state["modules"]["field"])
-    dens = DENSITIES.build(choose_density(conf.density, data)[0]).to(device)   # density=auto: as the run chose
-    dens.load_state_dict(state["modules"]["density"])
-    sampler, background = _sampler(conf, state, box, device), _background(state, data, device)
-    # as volsdf does before its test views: the SDF cache is refreshed from the final field (the
-    # checkpointed copy can be up to `every` steps old, and evaluation renders skip the rays it calls empty)
-    sampler.update(int(state.get("step", 0)), model, None, force=True)
-    field_fn = field_with_gradient(model)
-    return lambda o, d: render_sdf_rays(field_fn, o, d, sampler, dens, field=model, background=background)
-
-
-def _gaussian_renderer(model, sh_degree: int, background, tile_size: int = 4) -> Render:
-    from l3d_app.render.gaussians.rasterize import rasterize_gaussians
-
-    def render(cams: Cameras) -> Dict[str, torch.Tensor]:
-        out = rasterize_gaussians(model.means, model.log_scales, model.quats, model.opacity_logits, model.sh,
-                                  sh_degree, cams, background, tile_size=tile_size)
-        return {"color": out["color"], "depth": out["depth"], "alpha": out["alpha"]}
-    return render
-
-
-def _gaussians(conf, state, data, device, chunk) -> Render:
-    from l3d_app.models.gaussians import GaussianModel
-
-    sd = state["modules"]["gaussians"]
-    model = GaussianModel(*(sd[k] for k in ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")))
-    return _gaussian_renderer(model.to(device), int(conf.sh_degree), _background(state, data, device),
-                              int(conf.get("tile_size", 4)))
-
-
-ADAPTERS = {"train_nerf": _nerf, "volsdf": _volsdf, "gs_train": _gaussians}
-
-
 def load_run(run_dir, device, chunk: int):
-    """(render, data, task name) of a finished run directory."""
+    """(render, data, task name) of a finished run directory (its ``.hydra/config.yaml`` and ``checkpoint.pt``)."""
     run = resolve_path(str(run_dir))
     cfg_file, ckpt = run / ".hydra" / "config.yaml", run / "checkpoint.pt"
     for f in (cfg_file, ckpt):
         if not f.is_file():
             raise UserError(f"checkpoint run directory {run} has no {f.relative_to(run)}")
-    conf = OmegaConf.load(cfg_file)
-    kind = str(conf.get("task_name"))
-    if kind not in ADAPTERS:
-        raise UserError(f"{cfg_file}: render_path renders runs of {', '.join(ADAPTERS)}, not {kind}")
-    state = read_checkpoint(ckpt)["trainable"]
-    data = DATASETS.build(conf.data).to(device)
-    with torch.no_grad():
-        return ADAPTERS[kind](conf, state, data, device, chunk), data, kind
+    conf = OmegaConf.to_container(OmegaConf.load(cfg_file), resolve=True)
+    return run_renderer(conf, read_checkpoint(ckpt)["trainable"], device, chunk, source=str(cfg_file))
 
 
 # ----------------------------------------------------------------- the path
@@ -196,39 +101,6 @@ def make_path(cfg, data, ply_model=None) -> Cameras:
     return interpolate_cameras(keys, n, closed=True)
 
 
-# ----------------------------------------------------------------- output
-def panel_frames(out: Dict[str, torch.Tensor], panels) -> torch.Tensor:
-    """(N, H, W * len(panels), 3) frames in [0, 1] from colour, depth, alpha (N, H, W[, 3])."""
-    alpha = out["alpha"].clamp(0, 1)
-    depth = out["depth"] / alpha.clamp_min(1e-6)
-    hit = alpha > 0.5
-    if bool(hit.any()):
-        q = torch.quantile(depth[hit].float()[:1_000_000], torch.tensor([0.02, 0.98]))
-        lo, hi = float(q[0]), float(q[1])
-    else:
-        lo, hi = 0.0, 1.0
-    gray = torch.where(hit, (1.0 - 0.8 * (depth - lo) / max(hi - lo, 1e-6)).clamp(0.2, 1.0), torch.zeros_like(depth))
-    parts = {"color": out["color"].clamp(0, 1), "depth": gray[..., None].expand(*gray.shape, 3),
-             "alpha": alpha[..., None].expand(*alpha.shape, 3)}
-    return torch.cat([parts[p] for p in panels], dim=2)
-
-
-def save_mp4(path, frames: torch.Tensor, fps: float) -> None:
-    """(N, H, W, 3) in [0, 1] -> H.264 mp4 (padded to even sizes), written atomically."""
-    import imageio.v2 as imageio
-
-    try:
-        import imageio_ffmpeg  # noqa: F401
-    except ImportError as err:
-        raise UserError("mp4 output needs imageio-ffmpeg: pip install imageio-ffmpeg (or formats=[gif])") from err
-    x = to_uint8(frames)
-    ph, pw = x.shape[1] % 2, x.shape[2] % 2
-    x = np.pad(x, ((0, 0), (0, ph), (0, pw), (0, 0)), mode="edge")
-    with atomic_path(path) as tmp:
-        imageio.mimwrite(tmp, list(x), fps=float(fps), codec="libx264", macro_block_size=1,
-                         ffmpeg_log_level="error", output_params=["-pix_fmt", "yuv420p"])
-
-
 @TASKS.register("render_path")
 def render_path(cfg, ctx) -> dict:
     """Render the path's frames, write mp4 / gif / camera_path.json."""
@@ -251,7 +123,7 @@ def render_path(cfg, ctx) -> dict:
         if not ply.is_file():
             raise UserError(f"PLY file not found: {ply}")
         ply_model = GaussianModel(**load_gaussian_ply(ply)).to(ctx.device)
-        render, kind = _gaussian_renderer(ply_model, int(cfg.sh_degree), background), "ply"
+        render, kind = gaussian_renderer(ply_model, int(cfg.sh_degree), background), "ply"
     elif cfg.get("checkpoint"):
         render, data, kind = load_run(cfg.checkpoint, ctx.device, int(cfg.chunk))
     else:

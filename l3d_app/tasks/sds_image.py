@@ -39,11 +39,11 @@ from l3d_app.errors import UserError
 from l3d_app.losses.sds import SDSLoss
 from l3d_app.metrics.prompt_match import check_image
 from l3d_app.registry import TASKS
-from l3d_app.runtime.media import save_gif, save_png, to_uint8
 from l3d_app.runtime.lr_schedules import warmup_cosine
+from l3d_app.runtime.media import save_gif, save_png, to_uint8
 from l3d_app.runtime.random import randint, randn
 from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.common import require_nonnegative, require_positive
+from l3d_app.tasks.common import loop_spec, require_nonnegative, require_positive
 
 
 def _in_vocabulary(prompt: str) -> bool:
@@ -128,8 +128,7 @@ def sds_image(cfg, ctx) -> dict:
             ctx.logger.image("sds/image", _hwc(img), i)
 
     with ctx.stopwatch.stage("optimise"):
-        result = train(ctx, trainable, step, int(cfg.iters), checkpoint_every=int(cfg.checkpoint_every),
-                       resume=bool(cfg.resume), desc="sds_image", after_step=after)
+        result = train(ctx, trainable, step, loop_spec(cfg, "sds_image"), after_step=after)
     final = decode()
     save_png(ctx.path("final.png"), _hwc(final))
     big = F.interpolate(final, scale_factor=8, mode="nearest")

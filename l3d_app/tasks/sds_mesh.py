@@ -34,10 +34,11 @@ from l3d_app.losses.sds import rgb_to_model_space, sds_loss
 from l3d_app.metrics.prompt_match import score_frames, score_metrics
 from l3d_app.models.texture_field import TextureField
 from l3d_app.registry import DATASETS, TASKS
+from l3d_app.render.evaluation import render_frames
 from l3d_app.render.mesh.field_texture import FieldTextureRenderer
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.common import render_frames, require_positive
+from l3d_app.tasks.common import loop_spec, require_positive
 from l3d_app.tasks.prior_common import load_prior
 
 __all__ = ["sds_mesh", "load_prior", "score_frames", "score_metrics"]  # the last three: sds_nerf's old import path
@@ -95,8 +96,7 @@ def sds_mesh(cfg, ctx) -> dict:
         return {} if rate is None else {"match_rate": rate}
 
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
-                       checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="sds_mesh")
+        result = train(ctx, trainable, step_fn, loop_spec(cfg, "sds_mesh"), eval_fn=eval_fn)
     with ctx.stopwatch.stage("render"):
         after = render_turntable("render after")
     score_after = score_frames(after, prompt)

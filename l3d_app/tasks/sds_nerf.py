@@ -54,9 +54,9 @@ from typing import Dict
 import torch
 
 
+from l3d_app.diffusion.registry import PRIORS
 from l3d_app.diffusion.view_prompts import VIEWS, ViewPrompts, check_orbit_ranges, sample_orbit_cameras
 from l3d_app.errors import UserError
-from l3d_app.diffusion.registry import PRIORS
 from l3d_app.geometry.camera_paths import turntable
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.losses.nerf_regularizers import density_normals, opacity_entropy, orientation_penalty
@@ -67,12 +67,13 @@ from l3d_app.registry import MODELS, SAMPLERS, TASKS
 from l3d_app.render.evaluation import depth_picture
 from l3d_app.render.volume.field_shading import (SCENE_BOX, SHADINGS, normals_as_latent, render_shaded_views,
                                           shading_sampler)
+from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.media import save_gif, save_png
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import randn
 from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.common import require_positive
+from l3d_app.tasks.common import loop_spec, require_positive
 
 
 
@@ -163,9 +164,8 @@ def sds_nerf(cfg, ctx) -> dict:
         return {"opacity": float(out["opacity"].mean()), **({} if rate is None else {"match_rate": rate})}
 
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
-                       checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="sds_nerf",
-                       reserve_evals=2.0 * len(cams_360) / len(cams_val))   # the turntable, albedo and textureless
+        budget = TimeBudget.of(ctx).keep_renders(2 * len(cams_360), len(cams_val))  # the turntable, albedo and textureless
+        result = train(ctx, trainable, step_fn, loop_spec(cfg, "sds_nerf"), eval_fn=eval_fn, budget=budget)
     with ctx.stopwatch.stage("render"):
         colour = render_turntable(cams_360, "albedo")
         plain = render_turntable(cams_360, "textureless")

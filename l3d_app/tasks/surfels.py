@@ -24,18 +24,19 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.geometry.gaussian_ply import save_gaussian_ply
 from l3d_app.losses.surfel_regularizers import depth_distortion, depth_normal_consistency
+from l3d_app.models.background import background_parameter
+from l3d_app.pipelines.live_viewer import finish_viewer, gaussian_view, start_viewer
 from l3d_app.pipelines.splats import SplatSteps, evaluate_views, initial_splats, scene_extent, splat_optimizer
 from l3d_app.pipelines.surface_mesh import fused_mesh, truth_scores
 from l3d_app.registry import DATASETS, STRATEGIES, TASKS
 from l3d_app.render.field_mesh import save_field_mesh
 from l3d_app.render.gaussians.panels import depth_range
 from l3d_app.render.gaussians.surfels import rasterize_surfels
+from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.config_values import config_words
 from l3d_app.runtime.media import save_gif, to_uint8
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import (background_parameter, require_mesh_formats, require_nonnegative,
-                                  require_positive)
-from l3d_app.tasks.viewer_common import finish_viewer, gaussian_view, start_viewer
+from l3d_app.tasks.common import loop_spec, require_mesh_formats, require_nonnegative, require_positive
 
 
 def _check(cfg) -> None:
@@ -95,11 +96,12 @@ def surfels(cfg, ctx) -> dict:
             loss, logs["normal"] = loss + float(normal.weight) * term, term.detach()
         return {"loss": steps.finish(loss, out, step), **logs}
 
-    budget, reserve = float(cfg.time_budget), float(cfg.reserve) + float(cfg.mesh_reserve)
+    # after training: the test views and the training views' depth (in validations), then the mesh's seconds
+    budget = TimeBudget.of(ctx, evals_after=(len(data.test) + len(data.train)) / len(data.val),
+                           reserve=float(cfg.reserve) + float(cfg.mesh_reserve))
 
     def after_step(step: int) -> None:
-        left = steps.steps_left(step, int(cfg.iters), budget - reserve - ctx.stopwatch.elapsed if budget > 0 else None)
-        logs = steps.after_step(step, left)
+        logs = steps.after_step(step, steps.steps_left(step, int(cfg.iters), budget))
         if logs:
             ctx.logger.log_scalars({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
 
@@ -113,11 +115,9 @@ def surfels(cfg, ctx) -> dict:
         prog_frames.append(torch.from_numpy(to_uint8(panel)))
         return {**m, "n_gaussians": model.num, "images": {"pred_truth_error_depth": panel}}
 
-    with ctx.stopwatch.stage("train"):      # after training: the test views and the training views' depth
-        result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn, eval_every=int(cfg.eval_every),
-                       checkpoint_every=int(cfg.checkpoint_every), resume=bool(cfg.resume), desc="surfels",
-                       after_step=after_step, log_every=int(cfg.log_every), time_budget=budget, reserve=reserve,
-                       reserve_evals=(len(data.test) + len(data.train)) / len(data.val))
+    with ctx.stopwatch.stage("train"):
+        result = train(ctx, trainable, step_fn, loop_spec(cfg, "surfels", log_every=int(cfg.log_every)), eval_fn,
+                       budget, after_step)
     finish_viewer(live, ctx, result.step)
     deg = steps.degree(result.step)
     with torch.no_grad():

@@ -23,12 +23,14 @@ import torch
 from l3d_app.losses.svr import svr_loss
 from l3d_app.metrics.f1_curve import f1_table
 from l3d_app.models.svr_model import MODEL_FILE, build_svr_model, n_params, save_svr_model
+from l3d_app.pipelines.svr import geometry_of, make_batch, predict_points
 from l3d_app.registry import TASKS
+from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, train
-from l3d_app.tasks.common import require_nonnegative, require_positive
-from l3d_app.tasks.svr_common import (evaluate_and_report, geometry_of, load_data, make_batch, plain, predict_points,
-                                      require_eval_view, require_thresholds, test_objects)
+from l3d_app.tasks.common import loop_spec, require_nonnegative, require_positive
+from l3d_app.tasks.svr_common import (evaluate_and_report, load_data, plain, require_eval_view, require_thresholds,
+                                      test_objects)
 
 VAL_SEED_OFFSET = 99  # the validation stream: seed + this (any fixed value; chosen once)
 
@@ -70,9 +72,8 @@ def svr_train(cfg, ctx) -> dict:
 
     use_val = int(cfg.eval_every) > 0 and len(quick) > 0
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step, iters, validate if use_val else None,
-                       int(cfg.eval_every), int(cfg.checkpoint_every), bool(cfg.resume), desc="svr_train",
-                       reserve_evals=test_objects(cfg, data) / max(1, len(quick)) if bool(cfg.eval_at_end) else 0.0)
+        budget = TimeBudget.of(ctx).keep_renders(test_objects(cfg, data) if bool(cfg.eval_at_end) else 0, len(quick))
+        result = train(ctx, trainable, step, loop_spec(cfg, "svr_train", iters), validate if use_val else None, budget)
     meta = {"encoder_cfg": encoder_cfg, "decoder_cfg": decoder_cfg, "geometry": geometry,
             "data_cfg": plain(cfg.data), "step": result.step}
     save_svr_model(ctx.path(MODEL_FILE), model, meta)

@@ -9,12 +9,12 @@ Each step: ``batch_rays`` random pixels of the TRAIN views, colour MSE. Every ``
 steps the shared loop evaluates the VALIDATION views (``eval_views`` of them; PSNR / SSIM and
 a ``pred | truth | error | depth`` picture in TensorBoard); the TEST views are rendered once,
 after training (``psnr``, ``ssim`` in metrics.json; ``val_*`` the last validation).
-``time_budget`` > 0: wall seconds for the whole task; the loop keeps time for the test views
-(priced at its validations), ``mesh_reserve`` seconds with ``extract_mesh=true`` (at ``mesh_resolution``
-128; another resolution adds the grid's extra points at the density's measured cost) and the top-level
-``reserve`` (5 s: the task config); the gif comes last with the
-frames that still fit (:func:`~l3d_app.tasks.field_common.write_turntables`). Outputs: ``turntable.gif`` (colour | depth, orbiting the data's
-up axis), ``test_views.png``, ``metrics.json``; ``extract_mesh=true`` adds ``mesh.<fmt>`` of
+``time_budget`` > 0: wall seconds for the whole task; the task declares what follows training to
+the run's :class:`~l3d_app.runtime.budget.TimeBudget` (the test views in validations, the mesh with
+``extract_mesh=true``, ``reserve`` seconds), which prices it; the gif comes last with the frames that
+still fit (:func:`~l3d_app.render.previews.write_turntables`). Outputs: ``turntable.gif`` (colour |
+depth, orbiting the data's up axis), ``test_views.png``, ``metrics.json``; ``extract_mesh=true`` adds
+``mesh.<fmt>`` of
 ``density = mesh_threshold`` coloured by the field (with ``mesh_cull``: only the faces some
 training camera sees; the whole level set in ``mesh_uncut.ply``).
 """
@@ -27,21 +27,22 @@ from typing import Dict
 import torch
 
 from l3d_app.geometry.rays import camera_rays
+from l3d_app.models.background import background_parameter
+from l3d_app.pipelines.views import BeforeAfter, evaluate_views
 from l3d_app.registry import DATASETS, MODELS, SAMPLERS, TASKS
-from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
-from l3d_app.render.volume.radiance import render_field_rays
+from l3d_app.render.field_mesh import extract_mesh, save_field_mesh, seconds_per_grid_point
+from l3d_app.render.mesh.visibility import cull_to_training_views
 from l3d_app.render.turntable import color_depth_frames
+from l3d_app.render.volume.radiance import render_field_rays
+from l3d_app.runtime.budget import TimeBudget, views_in_validations
 from l3d_app.runtime.config_values import config_words
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.optim import build_optimizer
-from l3d_app.runtime.precision import maybe_compile
 from l3d_app.runtime.random import randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import (background_parameter, require_mesh_formats, require_mesh_resolution,
-                                 require_positive)
-from l3d_app.tasks.viewer_common import finish_viewer, radiance_view, start_viewer
-from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
-                                        mesh_seconds_to_keep, write_turntables)
+from l3d_app.tasks.common import loop_spec, require_mesh_formats, require_mesh_resolution, require_positive
+from l3d_app.tasks.field_common import write_field_turntables
+from l3d_app.pipelines.live_viewer import finish_viewer, radiance_view, start_viewer
 
 
 @TASKS.register("train_nerf")
@@ -69,12 +70,9 @@ def train_nerf(cfg, ctx) -> dict:
     stats = {"samples_per_ray": 0.0, "train_seconds": 0.0, "steps": 0}
     trainable.extra["step_stats"] = stats      # checkpointed: the rates cover the resumed parts of a run
 
-    # compile_field: the radiance calls go through torch.compile (the sampler's density probes stay eager)
-    field = maybe_compile(model, enabled=bool(cfg.compile_field))
-
     def render_fn(o, d, **kw):
-        return render_field_rays(field, o, d, sampler, background=background["rgb"].clamp(0, 1),
-                                 density_field=model, **kw)
+        return render_field_rays(model, o, d, sampler, background=background["rgb"].clamp(0, 1),
+                                 **kw)
 
     live = start_viewer(cfg, ctx, data, *radiance_view(model, sampler, background["rgb"], int(cfg.chunk)))
 
@@ -102,13 +100,12 @@ def train_nerf(cfg, ctx) -> dict:
 
     val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val
 
+    # what follows training: the test views (the gif takes what is left) and, extracted, the mesh
+    budget = TimeBudget.of(ctx, evals_after=views_in_validations(len(val), len(data.test)))
     before_after = BeforeAfter()
     trainable.extra["before_after"] = before_after      # checkpointed: a resumed run keeps its "before"
-    before_seconds = None        # the loop's first price of a validation under a time budget
     if len(val) and bool(cfg.before_after) and not (bool(cfg.resume) and ctx.path("checkpoint.pt").exists()):
-        t_before = time.perf_counter()
-        before_after.before(ctx, lambda: evaluate(val))
-        before_seconds = time.perf_counter() - t_before
+        budget.time_validation(lambda: before_after.before(ctx, lambda: evaluate(val)))   # the loop's first price
 
     def eval_fn(step: int) -> Dict[str, float]:
         sampler.update(step, model, ctx.generator)
@@ -116,16 +113,11 @@ def train_nerf(cfg, ctx) -> dict:
         before_after.after(picture)
         return {**metrics, **figures(), "images": {"views": picture}}
 
-    # mesh_reserve: the mesh step's seconds at mesh_resolution 128; another resolution: the density timed
-    mesh_reserve = mesh_seconds_to_keep(cfg, ctx, "mesh_reserve", model.density, box) if bool(cfg.extract_mesh) else 0.0
+    mesh_reserve = budget.keep_mesh(int(cfg.mesh_resolution), float(cfg.mesh_reserve), lambda: seconds_per_grid_point(
+        model.density, box, device=ctx.device)) if bool(cfg.extract_mesh) else 0.0
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn if len(val) else None,
-                       eval_every=int(cfg.eval_every), checkpoint_every=int(cfg.checkpoint_every),
-                       resume=bool(cfg.resume), desc="train_nerf", after_step=after_step,
-                       time_budget=float(cfg.time_budget),
-                       reserve=float(cfg.reserve) + mesh_reserve,
-                       reserve_evals=evals_after_training(     # the test views (the gif takes what is left)
-                           len(val), len(data.test)), eval_price=before_seconds)
+        result = train(ctx, trainable, step_fn, loop_spec(cfg, "train_nerf"), eval_fn if len(val) else None, budget,
+                       after_step)
     finish_viewer(live, ctx, result.step)
     with torch.no_grad():
         sampler.update(result.step, model, ctx.generator)
@@ -147,8 +139,8 @@ def train_nerf(cfg, ctx) -> dict:
                 save_field_mesh(mesh, ctx.path("mesh"), config_words(cfg.mesh_formats, "mesh_formats"))
             metrics["mesh_faces"] = 0 if mesh is None else int(mesh.num_faces)
             metrics["mesh_reserve_seconds"] = round(mesh_reserve, 4)
-        metrics["gif_frames"] = write_turntables(cfg, ctx, data,
-                                                 {"turntable.gif": color_depth_frames(render_fn, int(cfg.chunk))})
+        metrics["gif_frames"] = write_field_turntables(cfg, ctx, data, {"turntable.gif": color_depth_frames(
+            render_fn, int(cfg.chunk))}, budget)
     metrics.update({**{k: v for k, v in result.val_metrics().items() if k in ("val_psnr", "val_ssim")},
                     **result.timing(), "n_params": sum(p.numel() for p in model.parameters()),
                     **{k: round(float(v), 5) for k, v in figures().items()}, "history": result.history_rows()})

@@ -34,14 +34,16 @@ from l3d_app.diffusion.builtin_prior import SPACES, BuiltinPrior, export_state, 
 from l3d_app.diffusion.sampling import ddim_sample
 from l3d_app.errors import UserError
 from l3d_app.metrics.prompt_match import match_rate
+from l3d_app.prompt_vocab import full_prompts
 from l3d_app.registry import TASKS
+from l3d_app.render.charts import image_grid
+from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.lr_schedules import warmup_cosine
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.paths import resolve_path
 from l3d_app.runtime.random import held_out_seed
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import require_fraction, require_positive
-from l3d_app.tasks.prior_common import full_prompts, image_grid
+from l3d_app.tasks.common import loop_spec, require_fraction, require_positive
 
 
 def _spaces(space: str):
@@ -134,9 +136,8 @@ def train_prior(cfg, ctx) -> dict:
         return out
 
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step, int(cfg.iters), lambda i: evaluate(i, "val"), int(cfg.eval_every),
-                       int(cfg.checkpoint_every), bool(cfg.resume), desc="train_prior", after_step=after,
-                       reserve_evals=1.0)      # the test samples cost what a validation's do
+        result = train(ctx, trainable, step, loop_spec(cfg, "train_prior"), lambda i: evaluate(i, "val"),
+                       TimeBudget.of(ctx).keep_renders(1), after)      # the test samples cost what a validation's do
     test = evaluate(result.step, "test")
     log_test(ctx, test, result.step)
     for s, imgs in samples.items():

@@ -24,9 +24,9 @@ from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
 from l3d_app.render.sdf.density_choice import choose_density
 from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.paths import resolve_path
-from l3d_app.runtime.training import CHECKPOINT, read_checkpoint
-from l3d_app.tasks.common import background_parameter
-from l3d_app.tasks.viewer_common import gaussian_view, radiance_view, sdf_view, show_cameras, viewer_options
+from l3d_app.runtime.checkpoints import CHECKPOINT, read_checkpoint
+from l3d_app.models.background import background_parameter
+from l3d_app.pipelines.live_viewer import gaussian_view, radiance_view, sdf_view, show_cameras, viewer_options
 from l3d_app.viewer.live import LiveViewer
 
 VIEWABLE = ("gs_train", "train_nerf", "volsdf")

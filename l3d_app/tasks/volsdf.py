@@ -71,9 +71,9 @@ Evaluation: every ``eval_every`` steps on the VALIDATION views (PSNR / SSIM and 
 end (``psnr``, ``ssim``; ``val_*`` the last validation). ``time_budget`` > 0: wall seconds
 for the whole task, ``reserve`` of them kept for the mesh and its scores at ``mesh_resolution`` 128 (at
 another resolution the grid's extra points are priced by the SDF's measured cost:
-:func:`~l3d_app.render.field_mesh.priced_mesh_seconds`; the test views are
+:meth:`~l3d_app.runtime.budget.TimeBudget.keep_mesh`; the test views are
 reserved from the measured evaluation time; the gifs come last with the frames that still fit,
-:func:`~l3d_app.tasks.field_common.write_turntables`); when the budget stops training before ``iters``,
+:func:`~l3d_app.render.previews.write_turntables`); when the budget stops training before ``iters``,
 the LR, beta anneal and level schedules follow the loop's prediction of its last step
 (:class:`~l3d_app.runtime.horizon.Horizon`), so the run still ends annealed. A marching-cubes mesh of the SDF's zero level set, scored
 against the ground-truth surface when the data carries one (``data.mesh``; the built-in scene) by
@@ -106,33 +106,36 @@ from l3d_app.losses.free_space import (fade_to_zero, free_stretch_loss, occupied
 from l3d_app.losses.occupancy import coverage_bce
 from l3d_app.losses.patch_consistency import PatchConsistency, surface_crossing
 from l3d_app.metrics.surface_scores import surface_scores
+from l3d_app.models.background import background_parameter
 from l3d_app.models.level_schedule import LevelSchedule
 from l3d_app.models.sdf_gradients import field_with_gradient
 from l3d_app.models.sdf_grid import pretrain_field
+from l3d_app.pipelines.views import BeforeAfter, evaluate_views
 from l3d_app.registry import DATASETS, DENSITIES, MODELS, SAMPLERS, TASKS
 from l3d_app.render.sdf.density_choice import candidate_configs, choose_density
 from l3d_app.render.sdf.densities import transition_width
 from l3d_app.render.evaluation import render_views
-from l3d_app.render.field_mesh import extract_mesh, save_field_mesh
+from l3d_app.render.field_mesh import extract_mesh, save_field_mesh, seconds_per_grid_point
 from l3d_app.render.volume.free_space import near_surface_weight
 from l3d_app.render.mesh.rgbd import true_depth_maps
+from l3d_app.render.mesh.visibility import cull_to_training_views
 from l3d_app.render.sdf.volume import render_sdf_rays
 from l3d_app.render.sdf.sphere_tracing import render_sdf_shaded
 from l3d_app.render.turntable import color_depth_frames
+from l3d_app.runtime.budget import TimeBudget, views_in_validations
 from l3d_app.runtime.config_values import config_words
 from l3d_app.runtime.media import save_png
 from l3d_app.runtime.horizon import Horizon
 from l3d_app.runtime.optim import build_optimizer
 from l3d_app.runtime.random import rand, randint
 from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import (background_parameter, require_fade_end, require_mesh_formats,
-                                 require_mesh_resolution, require_nonnegative, require_positive)
-from l3d_app.tasks.viewer_common import finish_viewer, sdf_view, start_viewer
-from l3d_app.tasks.field_common import (BeforeAfter, cull_to_training_views, evaluate_views, evals_after_training,
-                                        mesh_seconds_to_keep, write_turntables)
+from l3d_app.tasks.common import (loop_spec, require_fade_end, require_mesh_formats, require_mesh_resolution,
+                                 require_nonnegative, require_positive)
+from l3d_app.tasks.field_common import write_field_turntables
+from l3d_app.pipelines.live_viewer import finish_viewer, sdf_view, start_viewer
 from l3d_app.tasks.free_space_common import FILE as FREE_SPACE_FILE
 from l3d_app.tasks.free_space_common import (MIN_STAGE_SECONDS, check_free_space_config, fit_free_rays,
-                                               resolve_free_space, stage_deadline)
+                                               resolve_free_space)
 
 
 VOLSDF_ONLY = {"density_along_ray": False, "quadrature": "left", "alpha": None, "beta": 0.3, "beta_mode": "anneal",
@@ -270,10 +273,12 @@ def volsdf(cfg, ctx) -> dict:
         return evaluate_views(render, data.cameras[views], data.images[views], int(cfg.chunk), supersample)
 
     val = data.val[: int(cfg.eval_views)] if int(cfg.eval_views) > 0 else data.val
-    evals_after = evals_after_training(   # the test views, in validations (the gifs take what is left at the end)
+    evals_after = views_in_validations(   # the test views, in validations (the gifs take what is left at the end)
         len(val), len(data.test), int(cfg.supersample), int(cfg.val_supersample))
+    budget = TimeBudget.of(ctx, reserve=0.0, evals_after=evals_after, horizon=horizon)
     # reserve: the mesh step's seconds at mesh_resolution 128; another resolution is priced by the SDF's timed cost
-    reserve = mesh_seconds_to_keep(cfg, ctx, "reserve", model.sdf, box)
+    reserve = budget.keep_mesh(int(cfg.mesh_resolution), float(cfg.reserve),
+                               lambda: seconds_per_grid_point(model.sdf, box, device=ctx.device))
     resuming = bool(cfg.resume) and ctx.path("checkpoint.pt").exists()
     before_after, before_seconds = BeforeAfter(), None
     trainable.extra["before_after"] = before_after      # checkpointed: a resumed run keeps its "before"
@@ -281,11 +286,11 @@ def volsdf(cfg, ctx) -> dict:
         t_before = time.perf_counter()
         before_after.before(ctx, lambda: evaluate(val, int(cfg.val_supersample)))
         before_seconds = time.perf_counter() - t_before
+    budget.eval_price = before_seconds
     free, w_carve, w_ray = None, float(fs.weight), float(fs.ray_weight)
     covered = data.masks[tr].reshape(-1) >= 0.5 if data.masks is not None else None   # the images' alpha
     if int(fs.steps) > 0 and (w_carve > 0 or w_ray > 0):     # what the training rays pass through, from a radiance field
-        deadline = stage_deadline(float(cfg.time_budget), ctx.stopwatch.elapsed, before_seconds, evals_after,
-                                  reserve)
+        deadline = budget.stage_deadline(before_seconds, MIN_STAGE_SECONDS)
         if resuming:     # the saved stretches, or none where the run being resumed skipped its stage
             deadline = 0.0 if ctx.path(FREE_SPACE_FILE).exists() else None
         before = "unknown" if before_seconds is None else f"{before_seconds:.1f} s"
@@ -400,11 +405,8 @@ def volsdf(cfg, ctx) -> dict:
                 "images": {"views": picture}}
 
     with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step_fn, int(cfg.iters), eval_fn=eval_fn if len(val) else None,
-                       eval_every=int(cfg.eval_every), checkpoint_every=int(cfg.checkpoint_every),
-                       resume=bool(cfg.resume), desc="volsdf", after_step=after_step,
-                       time_budget=float(cfg.time_budget), reserve=reserve,
-                       reserve_evals=evals_after, horizon=horizon, eval_price=before_seconds)
+        result = train(ctx, trainable, step_fn, loop_spec(cfg, "volsdf"), eval_fn if len(val) else None, budget,
+                       after_step)
     finish_viewer(live, ctx, result.step)
     model.eval()
     with torch.no_grad():
@@ -419,7 +421,7 @@ def volsdf(cfg, ctx) -> dict:
     frames = 0
     if int(cfg.gif_frames) > 0:
         with ctx.stopwatch.stage("gifs"):
-            frames = write_turntables(cfg, ctx, data, _turntable_frames(cfg, model, render, box))
+            frames = write_field_turntables(cfg, ctx, data, _turntable_frames(cfg, model, render, box), budget)
     steps = max(stats["steps"], 1)
     metrics.update({
         **{k: v for k, v in result.val_metrics().items() if k in ("val_psnr", "val_ssim")},
@@ -517,7 +519,7 @@ def _surface_metrics(cfg, ctx, model, field_fn, box, data) -> Dict[str, float]:
 
 def _turntable_frames(cfg, model, render, box) -> Dict[str, Callable]:
     """render.gif (colour | depth) and geometry.gif (sphere-traced SDF shading): their frame functions
-    (about the data's up axis: :func:`~l3d_app.tasks.field_common.write_turntables`)."""
+    (about the data's up axis: :func:`~l3d_app.render.previews.write_turntables`)."""
     shade = lambda o, d: {"color": render_sdf_shaded(model.sdf, o, d, box)}  # noqa: E731
     return {"render.gif": color_depth_frames(render, int(cfg.chunk)),
             "geometry.gif": lambda c: render_views(shade, c, int(cfg.chunk))["color"]}

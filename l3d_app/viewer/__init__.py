@@ -3,4 +3,4 @@ browser's camera while a task trains, or a finished run (``task=view``).
 
 The viewer takes plain callables (take a snapshot of the model, render a snapshot through
 :class:`~l3d_app.geometry.cameras.Cameras`), so it knows no model; tasks wire it
-(``tasks/viewer_common.py``)."""
+(``pipelines/live_viewer.py``)."""

@@ -47,3 +47,14 @@ def cull_unseen_faces(mesh: Mesh, cameras: Cameras, tolerance: float, scale: int
     area = mesh.to("cpu").face_areas()
     removed = float(area[~keep].sum() / area.sum().clamp_min(1e-30))
     return submesh(mesh, keep.to(mesh.faces.device)), removed
+
+
+def cull_to_training_views(mesh: Mesh, data, box, resolution: int) -> Tuple[Mesh, float]:
+    """The extracted ``mesh`` without the faces no TRAINING camera of ``data`` sees (the leftover of
+    the initialisation below a plate seen from above, surfaces inside objects) and the share of its
+    area removed. The depth tolerance is two marching-cubes cells of the ``box`` ((2, 3) or nested
+    lists) at ``resolution``: the grid's own precision, not a tuned value."""
+    lo, hi = torch.as_tensor(box, dtype=torch.float64)
+    tolerance = 2.0 * float((hi - lo).max()) / int(resolution)
+    cams = data.cameras[data.train.to(data.cameras.device)]
+    return cull_unseen_faces(mesh, cams, tolerance)

@@ -1,4 +1,5 @@
-"""Command-line values checked against the type of the default they replace.
+"""The app's checks of the command line before a task starts: values against the type of the
+default they replace, and the shared run / output knobs against their ranges.
 
 Hydra parses ``iters=2.5`` as a float and ``resume=no`` as the string ``"no"``; a task that
 reads them with ``int(...)`` or ``bool(...)`` would run 2 steps, or resume, without a word.
@@ -25,7 +26,7 @@ from typing import Any, Iterable, List, Optional
 from omegaconf import DictConfig, OmegaConf
 
 from l3d_app.errors import UserError
-from l3d_app.runtime.config_values import is_number_list, shown
+from l3d_app.runtime.config_values import is_number_list, require_nonnegative, require_positive, shown
 
 _MISSING = object()
 
@@ -110,3 +111,16 @@ def check_command_line_types(cfg: DictConfig) -> None:
     errors = override_type_errors(cfg, defaults, keys)
     if errors:
         raise UserError(errors[0])
+
+
+RUN_KEYS_NONNEGATIVE = ("time_budget", "reserve", "mesh_reserve", "gif_frames", "turntable_size", "eval_views", "checkpoint_every")
+"""Run and output knobs that many tasks share, where 0 means none / off / the default and a
+negative value means nothing."""
+RUN_KEYS_POSITIVE = ("fps",)
+
+
+def require_run_keys(cfg) -> None:
+    """Check the shared run / output knobs a task's config has (``RUN_KEYS_*``) before the task
+    starts, so a bad turntable size or frame rate fails now, not after training."""
+    require_nonnegative(cfg, *(k for k in RUN_KEYS_NONNEGATIVE if k in cfg))
+    require_positive(cfg, *(k for k in RUN_KEYS_POSITIVE if k in cfg))
