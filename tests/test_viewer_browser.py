@@ -64,8 +64,8 @@ def training(tmp_path_factory):
     """gs_train on the built-in scene with viewer=true, running until the module's tests end."""
     run_dir = tmp_path_factory.mktemp("viewer_run")
     env = {**os.environ, "L3D_NO_PROGRESS": "1"}
-    proc = subprocess.Popen([sys.executable, "main.py", "task=gs_train", "viewer=true", "viewer_port=0", "viewer_width=160",
-                             "viewer_period=0.5", "iters=1000000", "time_budget=0", "eval_every=50", "tensorboard=false",
+    proc = subprocess.Popen([sys.executable, "main.py", "task=gs_train", "viewer=true", "+viewer_port=0", "+viewer_width=160",
+                             "+viewer_period=0.5", "iters=1000000", "time_budget=0", "eval_every=50", "tensorboard=false",
                              "threads=1", "data.n_train=24", "data.n_val=2", "data.n_test=2", "n_init=1500",
                              f"data.cache_dir={run_dir / 'cache'}", f"hydra.run.dir={run_dir}"],
                             cwd=REPO, env=env, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)

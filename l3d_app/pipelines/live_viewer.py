@@ -29,9 +29,10 @@ Render = Callable[[Any, Cameras], torch.Tensor]
 
 
 def viewer_options(cfg) -> Dict[str, Any]:
-    """The ``viewer_*`` knobs as LiveViewer keyword arguments."""
-    return {"host": "127.0.0.1", "port": int(cfg.get("viewer_port", 8080)), "width": int(cfg.get("viewer_width", 256)),
-            "period": float(cfg.get("viewer_period", 1.0))}
+    """LiveViewer keyword arguments from the optional ``+viewer_port`` / ``+viewer_width`` (px) /
+    ``+viewer_period`` (s) overrides; LiveViewer's own defaults otherwise."""
+    kinds = {"port": int, "width": int, "period": float}
+    return {"host": "127.0.0.1", **{k: kind(cfg[f"viewer_{k}"]) for k, kind in kinds.items() if f"viewer_{k}" in cfg}}
 
 
 def start_viewer(cfg, ctx, data, snapshot: Snapshot, render: Render, title: Optional[str] = None) -> Optional[LiveViewer]:

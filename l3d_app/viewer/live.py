@@ -66,7 +66,7 @@ class LiveViewer:
             self.server = viser.ViserServer(host=host, port=int(port), verbose=False)
         except OSError as err:
             raise UserError(f"the viewer cannot serve on {host}:{port} ({err.strerror or err}): "
-                            "set viewer_port=N (0: any free port)") from None
+                            "set +viewer_port=N (0: any free port)") from None
         self.snapshot_fn, self.render_fn = snapshot, render
         self.width, self.period, self.title = int(width), float(period), title
         self.url = f"http://{host}:{self.server.get_port()}"
