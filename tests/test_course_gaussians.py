@@ -67,7 +67,11 @@ def test_gs_render_course_path_writes_32_frames(compose, tmp_path):
 
 
 def test_init_points_keeps_a_seeded_subset_of_the_data_points():
-    from l3d_app.tasks.gs_train import _initial_model
+    from l3d_app.pipelines.splats import initial_splats
+
+    def _initial_model(cfg, raw, data, generator):
+        return initial_splats(raw, data, generator, cfg.n_init, cfg.init_colors, cfg.init_opacity, cfg.isotropic,
+                              cfg.init_scale, cfg.init_max_coverage, init_points=cfg.init_points)
 
     pts = torch.rand(500, 3, generator=torch.Generator().manual_seed(3))
     raw = type("Raw", (), {"points": pts, "point_colors": pts.flip(-1)})()
