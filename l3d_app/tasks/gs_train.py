@@ -3,7 +3,10 @@
 Initial splats: the dataset's own points (``data.points``, e.g. the truck's
 ``points_10000.npy``) when it carries them, else ``n_init`` points drawn uniformly in its
 scene box; colours (``init_colors``): ``views`` = median of the training pixels each point
-projects to, ``points`` = the dataset's ``point_colors``, ``grey``. Each step renders one
+projects to, ``points`` = the dataset's ``point_colors``, ``grey``. Scales: the neighbour distance,
+shrunk by one factor to ``init_max_coverage``; a photo capture's (points, background unknown: walls and
+floor are scene) capped per splat instead, and the view cells they leave uncovered get splats of their
+own (:func:`~l3d_app.models.gaussian_start.cover_views`). Each step renders one
 random training view and minimises ``L1 + ssim_lambda (1 - SSIM)`` (+ the strategy's
 regulariser) with Adam (per-parameter rates as in 3DGS; the means' rate is scaled by the
 scene extent and decays exponentially, a LambdaLR the shared loop steps). The SH degree
@@ -30,6 +33,7 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.gaussian_ply import save_gaussian_ply
 from l3d_app.metrics.image import psnr, ssim
 from l3d_app.models.background import background_parameter
+from l3d_app.models.gaussian_start import cover_views
 from l3d_app.models.gaussians import colors_from_views, init_from_points
 from l3d_app.registry import DATASETS, STRATEGIES, TASKS
 from l3d_app.render.gaussians.coverage import shrink_to_coverage
@@ -61,8 +65,10 @@ def _initial_model(cfg, raw, data, generator):
         raise UserError(f"init_colors must be views, points or grey, got {mode!r}")
     model = init_from_points(points, colors, opacity=float(cfg.init_opacity), isotropic=bool(cfg.isotropic),
                              scale_factor=float(cfg.init_scale)).to(points.device)
-    if float(cfg.init_max_coverage) > 0:          # bounded start-up cost (render/gaussians/coverage.py)
-        views = data.train[torch.linspace(0, len(data.train) - 1, min(16, len(data.train))).long()]
+    views = data.train[torch.linspace(0, len(data.train) - 1, min(16, len(data.train))).long()]
+    if getattr(raw, "points", None) is not None and not data.background_known:    # a photo capture: all is scene
+        model = cover_views(model, data.images[views], data.cameras[views], float(cfg.init_max_coverage))
+    elif float(cfg.init_max_coverage) > 0:          # bounded start-up cost (render/gaussians/coverage.py)
         model.log_scales.data = shrink_to_coverage(model.means, model.log_scales, model.quats,
                                                    torch.sigmoid(model.opacity_logits), data.cameras[views],
                                                    float(cfg.init_max_coverage))
