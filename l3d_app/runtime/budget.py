@@ -13,8 +13,10 @@ on any machine and image size:
   follows the model: a fuzzy surface renders slower than a sharp one; splats grow), times
   ``1 + evals_after``, plus ``reserve`` seconds;
 * a validation's price is known before the first step: a task's own timed validation
-  (``eval_price``, e.g. its picture before training), a resumed run's saved price, or one
-  validation the loop runs before its first step;
+  (``eval_price``, e.g. its picture before training) or a timed part of one
+  (:meth:`TimeBudget.price_from_part`), a resumed run's saved price, or one validation the loop
+  runs before its first step; a task's picture before training is drawn only when it fits
+  (:meth:`TimeBudget.fits_before_training`);
 * a stop rests on a price measured twice: before stopping, the loop validates again (once per
   validation, or once the price is ``max(1, eval_every // 5)`` steps old); at the same step the
   cheaper timing counts (a stall only adds time), later the new one. A price measured on a model
@@ -135,6 +137,21 @@ class TimeBudget:
         out = fn()
         self.eval_price = self.clock() - t0
         return out
+
+    def price_from_part(self, fn: Callable[[], float]) -> float:
+        """Time ``fn``, which does a part of one validation's work and returns that part's share in
+        (0, 1]; the seconds over the share are the loop's first price of a validation
+        (``eval_price``, until a whole one is timed), returned."""
+        t0 = self.clock()
+        share = float(fn())
+        self.eval_price = max(self.clock() - t0, 0.0) / max(share, 1e-9)
+        return self.eval_price
+
+    def fits_before_training(self, seconds: float) -> bool:
+        """Whether a stage of ``seconds`` before training ends by :meth:`stage_deadline` with the final
+        work priced at ``seconds`` as one validation (a third of the budget at most, half of what the
+        final work leaves); True without a budget."""
+        return self.stage_deadline(float(seconds), minimum=float(seconds)) is not None
 
     # ------------------------------------------------------------------ before and after training
     def seconds_left(self) -> Optional[float]:
