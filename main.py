@@ -15,13 +15,17 @@ def main(cfg: DictConfig):
 
 
 def cli() -> None:
-    """``main()`` with Hydra's own errors (a typo'd key, an unknown option of a config group, a
-    malformed override) and the file system's (a run directory that cannot be made or written)
-    reported like every other bad input: one line on stderr, exit status 2. A sweep runs all its
+    """``main()`` on the command line, its shorthands expanded (:mod:`l3d_app.aliases`), with Hydra's own
+    errors (a typo'd key, an unknown option of a config group, a malformed override) and the file system's
+    (a run directory that cannot be made or written) reported like every other bad input: one line on
+    stderr, exit status 2. A sweep runs all its
     jobs; one line per job with bad input, then a summary line and exit status 2.
     ``L3D_DEBUG=1`` leaves them to Hydra's report or the traceback."""
     from hydra.errors import CompactHydraException
 
+    from l3d_app.aliases import expand_aliases
+
+    sys.argv[1:] = expand_aliases(sys.argv[1:])     # beta=0.1 -> density.beta=0.1 (task=volsdf)
     if os.environ.get("L3D_DEBUG", "").strip() in ("", "0"):
         os.environ["HYDRA_FULL_ERROR"] = "1"   # Hydra raises instead of printing a report and exiting 1
     from l3d_app.sweep_jobs import SweepJobFailed, remove_empty_sweep_dirs, summary_line, without_job_error_echo

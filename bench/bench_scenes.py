@@ -56,7 +56,7 @@ EXTRA = {"train_nerf": ["extract_mesh=true"],
          "nerf_baseline": ["gif_frames=0", "before_after=false", "eval_every=25", "eval_views=1"]}
 # A held-out scene that a method's choices looked at: its row for that method is not a held-out
 # reading (docs/benchmark_scenes.md, "Choices made on these scenes").
-DIAGNOSIS = {("thin", "volsdf"): "diagnosis (volsdf's w_mask was chosen after reading it)",
+DIAGNOSIS = {("thin", "volsdf"): "diagnosis (volsdf's mask loss weight was chosen after reading it)",
              ("around", "volsdf"): "held out; diagnosis of evaluation cost (wall time only)"}
 TARGETS = {"train_nerf": "psnr >= 32", "gs_train": "psnr >= 33",
            "volsdf": "chamfer <= 1% diag, F1@0.02 obs >= 0.8, psnr >= 28, phantom < 5%"}

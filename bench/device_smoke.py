@@ -82,8 +82,8 @@ SHORT = {
                    "reserve=5", *_NERF_DATA],
     "train_prior": ["iters=20", "ae_iters=10", "warmup_steps=2", "eval_every=10", "eval_prompts=3",
                     "sample_steps=2", "latent_scale_batch=16", "batch_size=8", "checkpoint_every=10"],
-    "volsdf": ["iters=30", "pretrain_steps=10", "warmup_steps=5", "level_every=10", "eval_every=15",
-               "cache_every=8", "gif_frames=2", "turntable_size=32", "mesh_resolution=32",
+    "volsdf": ["iters=30", "stages.sphere_init.steps=10", "warmup_steps=5", "stages.coarse_to_fine.every=10",
+               "eval_every=15", "gif_frames=2", "turntable_size=32", "mesh_resolution=32",
                "eval_points=2000", "supersample=1", "time_budget=90", "reserve=5", *_NERF_DATA],
 }
 #: Runs that read another run's output: run name -> (producer, overrides with ``{dep}`` = its folder).

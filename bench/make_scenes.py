@@ -36,9 +36,9 @@ objects use ``roughplastic`` (alpha 0.1). Images are linear radiance to sRGB, st
 mesh's silhouette drawn by our own rasteriser through the written cameras (IoU per split):
 it tests the camera conversion, not the renderer.
 
-The development scenes (``dev``, and ``ground`` since 2026-11-26) are the only ones any
+The development scenes (``dev``, ``devtop`` and ``ground``) are the only ones any
 default may be chosen on. The held-out scenes took no part in any choice, except that volsdf's
-``w_mask`` was added after it failed on ``thin`` and ``around`` prompted volsdf's evaluation-cost
+mask loss was added after it failed on ``thin`` and ``around`` prompted volsdf's evaluation-cost
 caps (``bench/bench_scenes.py`` marks those rows; see ``docs/benchmark_scenes.md``).
 """
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import signal
 import sys
@@ -24,6 +25,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from l3d_app.aliases import ALIASES
 from l3d_app.command_line import check_command_line_types, require_run_keys
 from l3d_app.errors import UserError
 from l3d_app.registry import TASKS
@@ -113,6 +115,13 @@ def config_error_line(err: BaseException) -> str:
     message = str(err).split("Config search path:")[0]          # Hydra's search path: noise here
     text = " ".join(line.strip() for line in message.splitlines() if line.strip()) or type(err).__name__
     cause = str(err.__cause__ or "").strip().splitlines()
+    unknown = re.match(r"Could not override '([^']+)'\. To append to your config use \+([^ ]+)", text)
+    if unknown:                                     # a key the composed config does not have
+        key = unknown.group(1)
+        owners = [f"{short}= stands for {key}, which the chosen {key.rsplit('.', 1)[0]} group does not have"
+                  for table in ALIASES.values() for short, target in table.items() if target == key]
+        hint = owners[0] if owners else f"+{unknown.group(2)} adds a new key"
+        return f"unknown key '{key}' ({hint}; `python main.py task=... --cfg job` lists the keys)"
     return f"{text} ({cause[0].strip()})" if cause else text
 
 

@@ -1,6 +1,6 @@
 """Speed-vs-error report of a run or a sweep directory.
 
-    python -m l3d_app.report multirun/volsdf/2026-11-21_12-00-00 [--error psnr] [--out DIR]
+    python -m l3d_app.report multirun/volsdf/<date_time> [--error psnr] [--out DIR]
 
 Reads every ``metrics.json`` below the folder (and each job's ``.hydra/overrides.yaml``
 when present), so it works for every task. Writes ``report.md``, ``report.csv`` and

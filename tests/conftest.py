@@ -34,16 +34,21 @@ def course_data(*parts: str) -> Path:
     return path
 
 
-@pytest.fixture
-def compose():
-    """Compose the app's Hydra config with overrides (no run directory, no chdir)."""
+def compose_config(*overrides: str):
+    """The app's Hydra config composed with ``overrides`` (no run directory, no chdir), their shorthands
+    expanded as on the command line (l3d_app/aliases.py)."""
     from hydra import compose as hydra_compose, initialize_config_dir
 
-    def _compose(*overrides: str):
-        with initialize_config_dir(version_base="1.3", config_dir=str(REPO / "conf")):
-            return hydra_compose(config_name="config", overrides=list(overrides))
+    from l3d_app.aliases import expand_aliases
 
-    return _compose
+    with initialize_config_dir(version_base="1.3", config_dir=str(REPO / "conf")):
+        return hydra_compose(config_name="config", overrides=expand_aliases(list(overrides)))
+
+
+@pytest.fixture
+def compose():
+    """:func:`compose_config` as a fixture."""
+    return compose_config
 
 
 @pytest.fixture(scope="session")
@@ -66,3 +71,68 @@ def pytest_terminal_summary(terminalreporter, config):
         seed = config.getoption("randomly_seed", None)
         terminalreporter.write_line(f"random order: --randomly-seed={seed} (pytest-randomly; "
                                     f"-p no:randomly for file order)")
+
+
+VOLSDF_TINY = ("data.image_size=32", "data.n_train=48", "data.n_val=2", "data.n_test=2", "data.antialias=1",
+               "threads=1", "time_budget=0")
+"""volsdf on the built-in scene at 32 px (48 training views): the end-to-end tests' size."""
+
+
+@pytest.fixture(scope="session")
+def volsdf_run(tmp_path_factory, data_cache):
+    """One short volsdf run shared by the end-to-end tests (tests/test_volsdf.py): the defaults' parts (density=auto,
+    the sphere init, coarse-to-fine levels, colour, eikonal and patch terms) without the free-space stage
+    (:func:`free_space_run`), 80 steps of 256 rays from beta 0.1 (the shipped 0.3 has barely begun its anneal
+    by then), every output on. Its run directory, config and metrics."""
+    import json
+    from types import SimpleNamespace
+
+    from l3d_app.app import run_task
+
+    cfg = compose_config("task=volsdf", *VOLSDF_TINY, f"data.cache_dir={data_cache}", "iters=80",
+                         "eval_every=40", "batch_rays=256", "optim.lr=0.005", "beta=0.1", "stages.sphere_init.steps=50",
+                         "stages.free_space.steps=0", "gif_frames=2", "mesh_resolution=32", "eval_points=2000",
+                         "mesh_formats=[obj,glb]")
+    out = tmp_path_factory.mktemp("volsdf_run")
+    run_task(cfg, out_dir=out)
+    return SimpleNamespace(dir=out, cfg=cfg, metrics=json.loads((out / "metrics.json").read_text()))
+
+
+@pytest.fixture(scope="session")
+def free_space_run(tmp_path_factory, data_cache):
+    """One volsdf run with the free-space stage (tests/test_volsdf_free_space.py): the built-in scene at 64 px
+    (48 training views), the stage's 300 steps of 1024 rays (50000 of the 196608 training rays read off), then 30 steps of 256 rays whose only free-space
+    term is the ray term (weight 1, its ends as the stage left them) and no patch term. What each step handed
+    the ray term is recorded: the batch's ray indices, their ends and the batch's mean opacity before them."""
+    import json
+    from types import SimpleNamespace
+
+    import l3d_app.losses.free_space as free_space_losses
+    from l3d_app.app import run_task
+    from l3d_app.losses.terms import LossTerms
+
+    cfg = compose_config("task=volsdf", *VOLSDF_TINY, "data.image_size=64",
+                         f"data.cache_dir={data_cache}", "tensorboard=false",
+                         "iters=30", "eval_every=30", "batch_rays=256", "stages.sphere_init.steps=20",
+                         "stages.free_space.steps=300", "+stages.free_space.batch_rays=1024",
+                         "+stages.free_space.max_rays=50000", "losses.free_points.weight=0",
+                         "losses.free_rays.weight=1",
+                         "losses.free_rays.margin_beta=0", "losses.ncc.weight=0", "gif_frames=0", "mesh_resolution=16",
+                         "eval_points=500")
+    drawn, calls = [], []
+    real_call, real_opacity = LossTerms.__call__, free_space_losses.opacity_before
+
+    def record_batch(self, batch, iters):
+        drawn.append(batch.rays.clone())
+        return real_call(self, batch, iters)
+
+    def record_opacity(weights, t, ray_indices, ends, n_rays):
+        out = real_opacity(weights, t, ray_indices, ends, n_rays)
+        calls.append((drawn[-1], ends.detach().clone(), float(out.detach().mean())))
+        return out
+    out = tmp_path_factory.mktemp("free_space_run")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(LossTerms, "__call__", record_batch)
+        patch.setattr(free_space_losses, "opacity_before", record_opacity)
+        run_task(cfg, out_dir=out)
+    return SimpleNamespace(dir=out, cfg=cfg, metrics=json.loads((out / "metrics.json").read_text()), calls=calls)

@@ -30,8 +30,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PKG = REPO / "l3d_app"
-BASE = {"errors", "registry", "exports", "prompt_vocab", "__init__"}  # below every layer
-MIDDLE = {"render", "models", "losses", "metrics", "data", "diffusion", "strategies", "viewer"}
+BASE = {"errors", "registry", "exports", "prompt_vocab", "aliases", "__init__"}  # below every layer
+MIDDLE = {"render", "models", "losses", "metrics", "data", "diffusion", "strategies", "viewer", "stages"}
 ALLOWED = {  # layer -> layers its modules may import (besides their own layer)
     "base": {"base"},
     "runtime": {"base"},
@@ -44,6 +44,7 @@ ALLOWED = {  # layer -> layers its modules may import (besides their own layer)
     "strategies": {"models", "render", "geometry", "runtime", "base"},  # act on a model's tensors
     "viewer": {"geometry", "runtime", "base"},  # the browser page: takes snapshot / render callables
     "losses": {"render", "metrics", "diffusion", "geometry", "runtime", "base"},  # rendering losses render
+    "stages": {"models", "losses", "render", "metrics", "data", "geometry", "runtime", "base"},  # fit, schedule a model
     "pipelines": MIDDLE | {"geometry", "runtime", "base"},  # composes the middle layer for several tasks (plain arguments)
     "tasks": MIDDLE | {"pipelines", "geometry", "runtime", "base"},
     "report": {"runtime", "base"},
@@ -191,7 +192,8 @@ def test_registering_module_is_imported_by_its_package(module):
 def test_importing_each_package_completes_its_registries():
     """In a fresh interpreter, after ``import l3d_app.<pkg>`` (bottom-up), every registering
     module of that package is loaded, and every conf/task/*.yaml names a registered task."""
-    packages = ["runtime", "geometry", "render", "metrics", "diffusion", "losses", "models", "strategies", "data", "tasks"]
+    packages = ["runtime", "geometry", "render", "metrics", "diffusion", "losses", "models", "strategies", "data", "stages",
+                "tasks"]
     code = ("import importlib, json, sys\nout = {}\n"
             f"for p in {packages!r}:\n"
             "    importlib.import_module('l3d_app.' + p)\n"

@@ -44,7 +44,7 @@ def test_table_names_each_rows_commit_and_the_committed_ledger_is_complete():
 
 
 def test_a_scene_a_methods_choice_looked_at_is_not_called_held_out_for_it(tmp_path):
-    """volsdf's w_mask was chosen after reading thin: thin's volsdf row says diagnosis, the
+    """volsdf's mask loss weight was chosen after reading thin: thin's volsdf row says diagnosis, the
     other methods' rows on thin stay held out; --render-only rewrites the table from the ledger
     and keeps the section's 'Last call' sentence."""
     bench = _bench()

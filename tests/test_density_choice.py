@@ -9,7 +9,7 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
-from l3d_app.render.sdf.density_choice import below_fraction, candidate_configs, choose_density
+from l3d_app.render.sdf.density_choice import BELOW_FRACTION, below_fraction, choose_density, possible_configs
 
 
 def _data(elevations_deg, up=None, box=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))):
@@ -32,7 +32,7 @@ def test_below_fraction_matches_a_naive_count():
 
 def test_auto_picks_neus_from_a_quarter_below_and_volsdf_under_it(compose):
     cfg = compose("task=volsdf").density
-    assert cfg.name == "auto" and cfg.below_fraction == 0.25
+    assert cfg.name == "auto" and "below_fraction" not in cfg and BELOW_FRACTION == 0.25
     above = _data([10.0, 30.0, 50.0, 70.0] * 2, up=[0.0, 1.0, 0.0])
     quarter = _data([-20.0, 30.0, 50.0, 70.0] * 2, up=[0.0, 1.0, 0.0])
     under = _data([-20.0] + [30.0] * 4, up=[0.0, 1.0, 0.0])            # 1 of 5: 20 %
@@ -55,18 +55,17 @@ def test_the_choice_reads_the_datas_up_axis_and_the_boxs_centre(compose):
 
 
 def test_neus_under_auto_takes_its_width_and_schedule_from_volsdfs_knobs(compose):
-    volsdf, neus = candidate_configs(compose("task=volsdf", "beta=0.25", "beta_end=0.004").density)
+    volsdf, neus = possible_configs(compose("task=volsdf", "beta=0.25", "density.beta_end=0.004").density)
     assert [volsdf[k] for k in ("name", "beta", "beta_end", "mode")] == ["volsdf", 0.25, 0.004, "anneal"]
     assert [neus[k] for k in ("name", "mode", "anneal_fraction")] == ["neus", "anneal", 0.8]
     assert neus["s"] == pytest.approx(4.0) and neus["s_end"] == pytest.approx(250.0)
     fixed = compose("task=volsdf", "density=volsdf")
-    assert candidate_configs(fixed.density) == (fixed.density,)            # an explicit density is kept as is
+    assert possible_configs(fixed.density) == (fixed.density,)            # an explicit density is kept as is
     assert choose_density(fixed.density, _data([-40.0] * 4, up=[0, 1, 0]))[0]["name"] == "volsdf"
 
 
 @pytest.mark.parametrize("fraction", [0, -0.1, 1.5, "half", True])
 def test_a_below_fraction_outside_0_1_is_refused(compose, fraction):
-    cfg = compose("task=volsdf").density
-    cfg.below_fraction = fraction
+    cfg = {**compose("task=volsdf").density, "below_fraction": fraction}
     with pytest.raises(UserError, match="density.below_fraction must lie in"):
-        candidate_configs(cfg)
+        possible_configs(cfg)

@@ -87,9 +87,9 @@ RESUMED_RATES = {
                    "data.n_train=4", "data.n_val=1", "data.n_test=1", "time_budget=0", "batch_rays=64",
                    "sampler.resolution=16"),
     "volsdf": ("task=volsdf", "iters=6", "eval_every=3", "gif_frames=0", "data.image_size=16", "data.n_train=4",
-               "data.n_val=1", "data.n_test=1", "time_budget=0", "batch_rays=64", "free_space.steps=0",
-               "pretrain_steps=5", "mesh_resolution=16", "eval_points=500", "before_after=false",
-               "sampler.resolution=16"),
+               "data.n_val=1", "data.n_test=1", "time_budget=0", "batch_rays=64", "stages.free_space.steps=0",
+               "stages.sphere_init.steps=5", "mesh_resolution=16", "eval_points=500", "before_after=false",
+               "+sampler.resolution=16"),
     "fit_point": FIT_POINT,
 }
 
@@ -117,8 +117,8 @@ def test_resuming_a_finished_neus_anneal_run_gives_back_its_figures(compose, tmp
     """resume=true on a finished volsdf run with an annealed NeuS density runs no step and evaluates the
     loaded field again: with the checkpoint's last s (not the configured start) its figures are the run's
     own (not those of the configured starting s = 3.0)."""
-    args = (*RESUMED_RATES["volsdf"], "density=neus", "s=3.0", "s_mode=anneal", "s_end=100", "ncc.weight=0",
-            "tensorboard=false", f"data.cache_dir={data_cache}")
+    args = (*RESUMED_RATES["volsdf"], "density=neus", "s=3.0", "density.mode=anneal", "density.s_end=100",
+            "losses.ncc.weight=0", "tensorboard=false", f"data.cache_dir={data_cache}")
     run_task(compose(*args), out_dir=tmp_path)
     first = read(tmp_path)
     run_task(compose(*args, "resume=true"), out_dir=tmp_path)

@@ -1,15 +1,14 @@
-"""The ray form of known free space (``free_space.ray_weight``): the opacity a render accumulates
-before each ray's free-stretch end, against a naive loop, against the closed form of a VolSDF
-plane (value and gradient in the plane's depth, float64), the training-ray bookkeeping of the
-stretch ends, a thin sheet in front of the end thinned away by the loss alone, and ``log_depth``
-(``free_space.ray_loss=log_depth``) against the same closed form and behind an opaque lid."""
+"""The ray form of known free space (``losses.free_rays``): the opacity a render accumulates before each
+ray's free-stretch end, against a naive loop, against the closed form of a VolSDF plane (value and
+gradient in the plane's depth, float64), the training-ray bookkeeping of the stretch ends, and a thin
+sheet in front of the end thinned away by the loss alone."""
 
 import math
 
 import pytest
 import torch
 
-from l3d_app.losses.free_space import MAX_DEPTH, log_depth, opacity_before
+from l3d_app.losses.free_space import opacity_before
 from l3d_app.render.volume.free_space import FreeRays
 from l3d_app.render.volume.rendering import render_rays
 
@@ -94,69 +93,6 @@ def test_ends_per_ray_map_the_kept_rays_and_drop_a_covered_open_end():
     covered[[2, 5]] = True                     # ray 0's end is the field's, kept; ray 1's open end is dropped
     ends = free.ends_per_ray(10, covered)
     assert float(ends[2]) == pytest.approx(3.45) and ends[5] == ninf
-
-
-def test_ends_per_ray_extend_moves_only_the_ends_where_the_field_became_opaque():
-    """extend=0.03 (free_space.ray_margin 0.02 against a margin of 0.05): ray 0's end moves from 3.45 to
-    3.48, its distance less 0.02; ray 1's box-exit end (never opaque) stays at 4.0, or -inf when covered;
-    ray 2, dropped at construction (nothing left before its surface), stays -inf."""
-    o = torch.tensor([[-3.0, 0.0, 0.0], [-3.0, 0.2, 0.0], [-3.0, 0.0, 0.3]])
-    d = torch.tensor([[1.0, 0.0, 0.0]] * 3)
-    free = FreeRays.from_distances(o, d, torch.tensor([3.5, math.inf, 2.02]), BOX, margin=0.05,
-                                   index=torch.tensor([0, 1, 2]))
-    ninf = -math.inf
-    torch.testing.assert_close(free.ends_per_ray(4, extend=0.03), torch.tensor([3.48, 4.0, ninf, ninf]))
-    covered = torch.tensor([True, True, False, False])
-    torch.testing.assert_close(free.ends_per_ray(4, covered, extend=0.03), torch.tensor([3.48, ninf, ninf, ninf]))
-    torch.testing.assert_close(free.ends_per_ray(4, covered), torch.tensor([3.45, ninf, ninf, ninf]))
-
-
-@pytest.mark.parametrize("p, e", [(1.2, 1.0), (1.0, 1.0), (0.9, 1.0), (0.5, 1.0)])
-def test_log_depth_of_a_plane_gives_the_closed_form_and_its_gradient(p, e):
-    """free_space.ray_loss=log_depth: log(1 + tau) of the rendered plane's opacity in front of e against
-    log(1 + depth) of the closed form, value and d/dp (central difference of it), float64."""
-    alpha, beta = 20.0, 0.05
-    depth = torch.tensor(p, dtype=torch.float64, requires_grad=True)
-    w, t, idx = _rendered_plane(depth, alpha, beta)
-    got = log_depth(opacity_before(w, t, idx, torch.tensor([e], dtype=torch.float64), 1))
-    got.sum().backward()
-    h = 1e-6
-    want = math.log1p(_plane_depth(p, e, alpha, beta))
-    want_grad = (math.log1p(_plane_depth(p + h, e, alpha, beta))
-                 - math.log1p(_plane_depth(p - h, e, alpha, beta))) / (2 * h)
-    assert float(got.detach()) == pytest.approx(want, rel=2e-3, abs=1e-6)
-    assert float(depth.grad) == pytest.approx(want_grad, rel=2e-3, abs=1e-6)
-    assert float(depth.grad) < 0
-
-
-def test_log_depth_does_not_saturate_behind_an_opaque_lid():
-    """A solid whose face lies 0.5 (10 beta, optical depth 10) in front of the end: the opacity loss's
-    gradient in the face's depth is ~alpha exp(-10), so 100 SGD steps hardly move it (< 0.01);
-    log_depth's is ~alpha / 11, and the same steps push the face to within 2 beta of the end."""
-    alpha, beta, e = 20.0, 0.05, 1.0
-    end = torch.tensor([e], dtype=torch.float64)
-    moved = {}
-    for name, term in (("opacity", lambda o: o), ("log_depth", log_depth)):
-        p = torch.nn.Parameter(torch.tensor(0.5, dtype=torch.float64))
-        opt = torch.optim.SGD([p], lr=0.01)
-        for _ in range(100):
-            opt.zero_grad()
-            w, t, idx = _rendered_plane(p, alpha, beta, n=20_000)
-            term(opacity_before(w, t, idx, end, 1)).sum().backward()
-            opt.step()
-        moved[name] = float(p.detach())
-    assert moved["opacity"] - 0.5 < 0.01
-    assert moved["log_depth"] > e - 2 * beta
-
-
-def test_log_depth_stops_at_max_depth_with_no_gradient_in_float32():
-    o = torch.tensor([0.0, 1e-4, 1.0 - 1e-7, 1.0, 1.0 + 1e-6], requires_grad=True)
-    log_depth(o).sum().backward()
-    v = log_depth(o.detach())
-    assert torch.isfinite(v).all() and torch.isfinite(o.grad).all()
-    assert float(v[0]) == 0 and float(v[1]) == pytest.approx(1e-4, rel=1e-3)        # the opacity near 0
-    torch.testing.assert_close(v[2:], torch.full((3,), math.log1p(MAX_DEPTH)), rtol=1e-3, atol=0)
-    assert float(o.grad[1]) == pytest.approx(1.0, rel=1e-3) and (o.grad[2:] == 0).all()
 
 
 def test_a_sheet_in_front_of_the_end_is_thinned_away():

@@ -64,20 +64,16 @@ def test_free_distance_of_a_constant_fog_and_of_a_wall():
     assert math.isinf(float(wall[3]))
 
 
-def test_several_levels_read_off_one_render_match_one_level_each():
+def test_chunks_do_not_change_the_distances_of_a_rising_density():
     est = StratifiedEstimator(400, scene_box=BOX)
     o = torch.tensor([[-3.0, 0.0, 0.0], [-3.0, 0.2, 0.1], [0.5, -3.0, 0.0], [-3.0, 5.0, 0.0]])
     d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
     field = _field(lambda p: 2.0 + 3.0 * p[:, 0].clamp_min(0))     # density rising along +x
-    levels = [0.05, 0.3, 0.9]
-    both = free_distances(field, est, o, d, levels, chunk=3)       # chunks split the rays
-    assert both.shape == (4, 3)
-    for k, level in enumerate(levels):
-        assert torch.equal(both[:, k], free_distances(field, est, o, d, level)), level
-    # constant density 2 on the ray along +y at x = 0.5 is 2 + 1.5: opacity 1 - exp(-3.5 s) reaches each level
-    want = torch.tensor([2.0 + math.log(1 / (1 - x)) / 3.5 for x in levels])
-    torch.testing.assert_close(both[2], want, atol=2.0 / 400, rtol=0)
-    assert torch.isinf(both[3]).all()
+    chunked = free_distances(field, est, o, d, 0.3, chunk=3)       # chunks split the rays
+    assert torch.equal(chunked, free_distances(field, est, o, d, 0.3))
+    # constant density 2 on the ray along +y at x = 0.5 is 2 + 1.5: opacity 1 - exp(-3.5 s) reaches 0.3
+    torch.testing.assert_close(chunked[2], torch.tensor(2.0 + math.log(1 / 0.7) / 3.5), atol=2.0 / 400, rtol=0)
+    assert torch.isinf(chunked[3])
 
 
 def test_free_segments_follow_the_box_and_the_margin():
@@ -103,22 +99,9 @@ def test_free_segments_follow_the_box_and_the_margin():
     assert abs(float(pts[~first, 0].mean()) - (-0.75)) < 0.01
 
 
-def _uniform_draw(free, radius, g):
-    pts = free.sample(256, g)[0]
-    return pts, torch.ones(pts.shape[0])
-
-
-def _resampled_draw(free, radius, g):
-    from l3d_app.render.volume.free_space import near_surface_weight
-    pts, _, w = free.sample_resampled(256, 8, lambda p: near_surface_weight(p.norm(dim=-1) - radius, 0.05), g)
-    return pts, w
-
-
-@pytest.mark.parametrize("draw", [_uniform_draw, _resampled_draw])
-def test_carving_on_free_segments_shrinks_a_sphere_out_of_them(draw):
+def test_carving_on_free_segments_shrinks_a_sphere_out_of_them():
     """A sphere of radius 0.8 about the origin, rays along +x free up to x = -0.5: the loss
-    mean(relu(-f)) at points drawn on the free stretch (uniformly, or resampled near the current
-    surface with importance weights: the same expectation) leaves the radius at the stretch's end."""
+    mean(relu(-f)) at points drawn uniformly on the free stretch leaves the radius at the stretch's end."""
     o = torch.tensor([[-3.0, 0.0, 0.0]])
     free = FreeRays.from_distances(o, torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([2.55]), BOX, margin=0.05)
     radius = torch.nn.Parameter(torch.tensor(0.8))
@@ -126,61 +109,7 @@ def test_carving_on_free_segments_shrinks_a_sphere_out_of_them(draw):
     g = torch.Generator().manual_seed(0)
     for _ in range(300):
         opt.zero_grad()
-        pts, w = draw(free, radius, g)
-        (torch.relu(radius - pts.norm(dim=-1)) * w).mean().backward()
+        pts = free.sample(256, g)[0]
+        torch.relu(radius - pts.norm(dim=-1)).mean().backward()
         opt.step()
     assert 0.49 < float(radius.detach()) <= 0.56                   # just out of the stretch [-1, -0.5], not beyond
-
-
-def _three_rays():
-    o = torch.tensor([[-3.0, 0.0, 0.0], [-3.0, 0.3, 0.0], [0.6, -3.0, 0.2]], dtype=torch.float64)
-    d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
-    return FreeRays.from_distances(o, d, torch.tensor([3.2, math.inf, 2.7], dtype=torch.float64), BOX, margin=0.05)
-
-
-def _shell(points):      # a loss term living on a thin shell about x = 0.1 (as a free loss lives near surfaces)
-    return torch.exp(-(points[:, 0] - 0.1).abs() / 0.02)
-
-
-def test_resampled_free_points_keep_the_expectation_and_cut_its_variance():
-    """E[mean(g(x) w)] under importance resampling equals the uniform draw's E[g] (a float64 quadrature
-    along each free segment), for a g on a thin shell; the resampled estimate's spread is far smaller."""
-    free = _three_rays()
-    t = torch.linspace(0, 1, 200001, dtype=torch.float64)
-    want = 0.0
-    for i in range(len(free)):           # E over the uniform draw: mean over rays of the segment-average of g x length
-        pts = free.origins[i] + (free.near[i] + t * (free.far[i] - free.near[i]))[:, None] * free.dirs[i]
-        length = free.far[i] - free.near[i]
-        want += float(torch.trapezoid(_shell(pts) * length, t)) / len(free)
-    g = torch.Generator().manual_seed(3)
-    uniform, resampled = [], []
-    for _ in range(400):
-        pts, length = free.sample(256, g)
-        uniform.append(float((_shell(pts) * length).mean()))
-        pts, length, w = free.sample_resampled(256, 16, _shell, g)
-        assert float(w.max()) <= 2.0 + 1e-12
-        resampled.append(float((_shell(pts) * length * w).mean()))
-    uniform, resampled = torch.tensor(uniform, dtype=torch.float64), torch.tensor(resampled, dtype=torch.float64)
-    for est in (uniform, resampled):     # within 4 standard errors of the quadrature
-        assert abs(float(est.mean()) - want) < 4 * float(est.std()) / math.sqrt(len(est)) + 1e-9
-    assert float(resampled.std()) < 0.5 * float(uniform.std())
-
-
-def test_resampling_without_the_proposal_is_the_uniform_draw():
-    """mix 0: every weight is 1 and the points are uniform candidates (the x-mean of the draw as
-    :meth:`sample`'s: rays 1 and 2 along x, ray 3 at x = 0.1)."""
-    free = _three_rays()
-    pts, length, w = free.sample_resampled(30000, 4, _shell, torch.Generator().manual_seed(4), mix=0.0)
-    assert torch.all(w == 1.0)
-    want = (float(free.near[0] + free.far[0]) / 2 - 3.0 + float(free.near[1] + free.far[1]) / 2 - 3.0 + 0.6) / 3
-    assert abs(float(pts[:, 0].mean()) - want) < 0.01
-    with pytest.raises(ValueError, match="mix"):
-        free.sample_resampled(8, 2, _shell, None, mix=1.0)
-
-
-def test_near_surface_weight_is_the_laplace_shape():
-    from l3d_app.render.volume.free_space import near_surface_weight
-    torch.testing.assert_close(near_surface_weight(torch.tensor([0.0, 0.1, -0.1]), 0.1),
-                               torch.tensor([1.0, math.exp(-1), math.exp(-1)]))
-    with pytest.raises(ValueError, match="width"):
-        near_surface_weight(torch.zeros(1), 0.0)

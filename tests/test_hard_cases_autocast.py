@@ -127,7 +127,7 @@ def test_volsdf_density_beta_down_to_1e4_under_autocast(inputs, beta):
 def test_laplace_density_learnable_beta_gradient_under_autocast():
     """beta from exp(rho) (fp32 parameter), sdf from an autocast network (bf16): d/d rho finite
     and within bf16 accuracy of the float64 derivative."""
-    dens = LaplaceDensity(beta_init=1e-3, beta_min=1e-4)
+    dens = LaplaceDensity(beta_init=1e-3, learnable=True, beta_min=1e-4)
     sdf64 = torch.tensor(SDFS, dtype=D)
     with autocast("bf16", "cpu"):
         sdf = _bf16_net_output(sdf64)

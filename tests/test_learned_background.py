@@ -88,9 +88,9 @@ def test_volsdf_learns_the_background_of_a_capture(compose, tmp_path):
     learnt colour stalls at 0.91), only the background explains the rays that miss it."""
     _grey_blender(tmp_path / "scene", distance=8.0)
     learnt, fixed = _learnt_background(compose, tmp_path, "volsdf", "iters=80", "eval_every=80", "gif_frames=0", "warmup_steps=5",
-                                       "free_space.steps=0",
-                                       "batch_rays=64", "pretrain_steps=20", "mesh_resolution=16",
-                                       "eval_points=500", "before_after=false", "supersample=1", "sampler.resolution=24",
+                                       "stages.free_space.steps=0",
+                                       "batch_rays=64", "stages.sphere_init.steps=20", "mesh_resolution=16",
+                                       "eval_points=500", "before_after=false", "supersample=1", "+sampler.resolution=24",
                                        "time_budget=0")
     assert fixed == [1.0, 1.0, 1.0]
     assert max(abs(c - 90 / 255) for c in learnt) < 0.5 * (1 - 90 / 255), learnt

@@ -427,7 +427,7 @@ def test_an_unreadable_pointnet_checkpoint_is_named(tmp_path):
 @pytest.mark.parametrize("args,problem", [
     (("task=train_nerf", "data.scene_box=[[1,2],[3,4]]"), r"data.scene_box must be \[\[x, y, z\] min, \[x, y, z\] max\]"),
     (("task=train_nerf", "data.elevation_range=[5]"), "elevation_range must be a list of 2 numbers"),
-    (("task=volsdf", "sampler.anchor_window=[1]"), "anchor_window must be a list of 2 numbers"),
+    (("task=volsdf", "+sampler.anchor_window=[1]"), "anchor_window must be a list of 2 numbers"),
     (("task=pointnet_seg", "model=dgcnn", "model.widths=[]"), "dgcnn widths need >= 1 positive entry"),
     (("task=render360", "data=superquadric_parametric", "data.exponents=[1]"), "exponents must be a list of 2 numbers"),
 ])

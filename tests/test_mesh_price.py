@@ -72,7 +72,7 @@ class _Reserved(Exception):
 
 SMALL = ("data.image_size=16", "data.n_train=4", "data.n_val=1", "data.n_test=1", "before_after=false",
          "tensorboard=false", "time_budget=590")
-VOLSDF = ("task=volsdf", "free_space.steps=0", "pretrain_steps=5", *SMALL)
+VOLSDF = ("task=volsdf", "stages.free_space.steps=0", "stages.sphere_init.steps=5", *SMALL)
 
 
 @pytest.mark.parametrize("task, overrides, expected", [

@@ -44,8 +44,6 @@ def test_fixed_and_learnable_keep_their_s_through_the_schedule():
     learn.schedule(500, 1000)
     (p,) = list(learn.parameters())
     assert float(learn.s.detach()) == pytest.approx(64.0, rel=1e-6) and p.requires_grad
-    old = NeuSDensity(s=64.0, learnable=True)                  # the older spelling
-    assert old.mode == "learnable" and len(list(old.parameters())) == 1
     # d tau / d log s for the segment 0.05 -> -0.05: tau = 0.05 s, so 0.05 s
     tau = learn.optical_depth(torch.tensor([0.05, -0.05]), torch.tensor([0.0, 0.1]), torch.tensor([0.1, 0.2]),
                               torch.zeros(2, dtype=torch.long))
@@ -64,7 +62,6 @@ def test_an_annealed_s_survives_a_state_dict_round_trip():
 
 @pytest.mark.parametrize("kwargs,message", [
     ({"mode": "cosine"}, "fixed, learnable or anneal"),
-    ({"mode": "anneal"}, "needs s_end > 0"),
     ({"mode": "anneal", "s_end": -1.0}, "needs s_end > 0"),
     ({"s": 0.0}, "s must be > 0"),
     ({"anneal_fraction": 1.5}, r"anneal_fraction must be in \[0, 1\]"),
@@ -75,7 +72,8 @@ def test_bad_settings_are_refused(kwargs, message):
 
 
 def test_the_task_config_builds_an_annealed_neus(compose):
-    cfg = compose("task=volsdf", "density=neus", "s=3.0", "s_mode=anneal", "s_end=300", "anneal_fraction=0.5")
+    cfg = compose("task=volsdf", "density=neus", "s=3.0", "density.mode=anneal", "density.s_end=300",
+                  "density.anneal_fraction=0.5")
     dens = DENSITIES.build(cfg.density)
     assert (dens.mode, dens.s_start, dens.s_end, dens.anneal_fraction) == ("anneal", 3.0, 300.0, 0.5)
     assert DENSITIES.build(compose("task=volsdf", "density=neus").density).mode == "fixed"
@@ -94,7 +92,7 @@ def _tau_past_a_sphere_float64(h: float, s: float, radius: float = 0.5, n: int =
 def test_a_neus_silhouette_lies_on_the_zero_level_set(s):
     """A ray passing at height h collects log(1 + exp(-s h)) (up to the start's own term): opacity
     1 - 1 / (1 + exp(-s h)) = 1 / (1 + exp(s h)): one half exactly at h = 0, below it outside. VolSDF's
-    Laplace density at beta = 1 / s puts opacity 0.5 a few beta OUTSIDE the sphere (tasks/volsdf.py)."""
+    Laplace density at beta = 1 / s puts opacity 0.5 a few beta OUTSIDE the sphere."""
     dens = NeuSDensity(s=s)
     for h in (-0.5 / s, 0.0, 1.0 / s, 3.0 / s):
         t = torch.linspace(-2.0, 2.0, 20001, dtype=torch.float64)
@@ -105,36 +103,36 @@ def test_a_neus_silhouette_lies_on_the_zero_level_set(s):
         assert opacity == pytest.approx(1 / (1 + math.exp(s * h)), abs=2e-3)
 
 
-def _stops_with(compose, match, *overrides):
-    """volsdf on a missing folder with ``overrides`` raises a UserError matching ``match`` (a refused knob) or
-    naming the folder (the knobs accepted: the run got as far as the data)."""
-    import l3d_app.tasks  # noqa: F401
-    from l3d_app.errors import UserError
-    from l3d_app.registry import TASKS
-    cfg = compose("task=volsdf", *overrides, "data=blender", "data.root=/no/such/folder")
-    with pytest.raises(UserError, match=match):
-        TASKS.get("volsdf")(cfg, None)
-
-
-@pytest.mark.parametrize("override, owner", [
-    *[(o, "volsdf") for o in ("density_along_ray=true", "quadrature=linear", "alpha=50", "beta=0.1",
-                              "beta_mode=learnable", "beta_end=0.002", "beta_min=0.0005")],
-    *[(o, "neus") for o in ("s=200", "s_mode=learnable", "s_end=500")]])
-def test_a_densitys_own_knob_is_refused_under_the_other(compose, override, owner):
-    """``density=neus beta=0.1`` or ``density=volsdf s=200`` would be ignored: refused, naming the density the
-    knob needs; under that density the same knob is accepted (the run stops at the missing data)."""
+@pytest.mark.parametrize("override, owner", [("beta=0.1", "volsdf"), ("alpha=50", "volsdf"), ("s=200", "neus")])
+def test_a_densitys_shorthand_is_refused_under_the_other(compose, override, owner):
+    """``beta=``, ``alpha=``, ``s=`` stand for ``density.<key>`` (l3d_app/aliases.py): under the density that owns
+    the key they set it; under the other one the key does not exist and composing fails, naming it."""
+    from hydra.errors import ConfigCompositionException
     other = "neus" if owner == "volsdf" else "volsdf"
-    _stops_with(compose, f"needs density={owner}, got density={other}", f"density={other}", override)
-    _stops_with(compose, "/no/such/folder", f"density={owner}", override)
+    key, value = override.split("=")
+    assert compose("task=volsdf", f"density={owner}", override).density[key] == float(value)
+    with pytest.raises(ConfigCompositionException, match=f"density.{key}"):
+        compose("task=volsdf", f"density={other}", override)
 
 
-def test_the_refused_knobs_shipped_values_are_the_configs(compose):
-    """The check compares each knob with the value conf/task/volsdf.yaml ships: the two must agree, or a
-    default run of either density would be refused (or a changed knob let through)."""
-    from l3d_app.tasks.volsdf import NEUS_ONLY, VOLSDF_ONLY
-    cfg = compose("task=volsdf")
-    for key, shipped in {**VOLSDF_ONLY, **NEUS_ONLY}.items():
-        assert cfg.get(key) == shipped, key
+@pytest.mark.parametrize("override", ["beta=0.1", "density.mode=fixed", "density.beta_end=0.002"])
+def test_density_auto_takes_volsdfs_width_knobs_for_both(compose, override):
+    """Under the default ``density=auto`` VolSDF's width knobs drive both densities (NeuS: s = 1 / beta)."""
+    from l3d_app.render.sdf.density_choice import possible_configs
+    cfg = compose("task=volsdf", override)
+    assert cfg.density.name == "auto" and len(possible_configs(cfg.density)) == 2
+
+
+def test_density_auto_refuses_what_only_one_density_reads(compose):
+    """NeuS's ``s`` is not an auto knob (composing fails); VolSDF's fixed ``alpha`` would hold for one of the two
+    densities only: refused before the data is read."""
+    from hydra.errors import ConfigCompositionException
+    from l3d_app.errors import UserError
+    from l3d_app.render.sdf.density_choice import possible_configs
+    with pytest.raises(ConfigCompositionException):
+        compose("task=volsdf", "s=200")
+    with pytest.raises(UserError, match="alpha=50 is VolSDF.s alone"):
+        possible_configs(compose("task=volsdf", "alpha=50").density)
 
 
 def test_a_loaded_annealed_state_renders_with_its_last_s():
@@ -160,15 +158,3 @@ def test_a_loaded_annealed_state_renders_with_its_last_s():
     fresh = NeuSDensity(s=5.0, mode="learnable")
     fresh.load_state_dict(learnt.state_dict())
     assert float(fresh.s.detach()) == pytest.approx(40.0)
-
-
-@pytest.mark.parametrize("override,accepted", [("beta=0.1", True), ("beta_mode=fixed", True), ("beta_end=0.002", True),
-                                               ("s=200", False), ("s_mode=learnable", False), ("quadrature=linear", False),
-                                               ("alpha=50", False), ("beta_min=0.0005", False),
-                                               ("density_along_ray=true", False)])
-def test_density_auto_takes_the_shared_width_knobs_and_refuses_one_densitys_own(compose, override, accepted):
-    """Under the default ``density=auto`` beta / beta_mode / beta_end drive both densities (NeuS: s = 1 / beta);
-    a knob only one density reads would hold for one of the two: refused before the data is read."""
-    assert compose("task=volsdf").density.name == "auto"
-    _stops_with(compose, "/no/such/folder" if accepted else "got density=auto .density=auto picks NeuS or VolSDF",
-                override)

@@ -23,10 +23,13 @@ def test_every_optimiser_builds_for_every_task_that_offers_the_group(compose, ta
     params = [torch.nn.Parameter(torch.zeros(3))]
     optim_cfg = cfg.optim
     if task == "volsdf":                    # warmup_steps=auto becomes the density's number, as the task does
-        from l3d_app.tasks.volsdf import optimizer_config
-        optim_cfg = optimizer_config(cfg, "neus")
+        from l3d_app.render.sdf.density_choice import with_density_warmup
+        from l3d_app.render.sdf.densities import VolSDFDensity
+        from l3d_app.render.sdf.neus import NeuSDensity
+        optim_cfg = with_density_warmup(cfg.optim, NeuSDensity())
         if "warmup_steps" in optim_cfg:
-            assert optim_cfg.warmup_steps == 150 and optimizer_config(cfg, "volsdf").warmup_steps == 50
+            assert optim_cfg["warmup_steps"] == 150
+            assert with_density_warmup(cfg.optim, VolSDFDensity())["warmup_steps"] == 50
     opt, _ = build_optimizer(optim_cfg, params, 100)
     assert opt.param_groups[0]["lr"] > 0
 

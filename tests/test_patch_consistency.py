@@ -125,45 +125,6 @@ def test_hard_cases_count_nothing_and_stay_finite(scene):
     assert torch.isfinite(t_mix.grad).all()
 
 
-def test_with_coverage_only_patches_wholly_on_the_object_count(scene):
-    cams, images, _ = scene
-    view, pixel, o, d, t, n = rays_of_view(cams, 3)
-    hit = torch.ones(len(t), dtype=torch.bool)
-    masks = torch.ones(images.shape[:3], dtype=torch.float64)
-    masks[3, :, 30:] = 0.0                     # the right part of view 3 is background
-    pc = PatchConsistency.build(images, cams, masks=masks)
-    loss, figs = pc.loss(view, pixel, o, d, t, n, hit)
-    right = pixel[:, 1] + 2 >= 30              # a 5x5 patch reaching column 30 or beyond
-    assert figs["ncc_rays"] == pytest.approx(float((~right).double().mean()), abs=1e-9)
-    assert figs["ncc"] > 0.97 and float(loss) < 0.015
-    masks[3, :, 30:] = 0.6                     # partly covered, above min_alpha 0.5: counts
-    assert pc.loss(view, pixel, o, d, t, n, hit)[1]["ncc_rays"] > 0.9
-
-
-def test_a_jittered_ray_warps_the_patch_of_its_pixel_centre(scene):
-    """``pixel_jitter`` training rays pass through a random point of their pixel: with ``centre_dirs`` the
-    patch stays centred on the pixel and the plane through the jittered ray's true hit is the same
-    plane, so the loss is the centre ray's; without it the patch is warped from the jittered point."""
-    from l3d_app.geometry.rays import pixel_axes
-
-    cams, _, pc = scene
-    view, pixel, o, d, t, n = rays_of_view(cams, 3)
-    hit = torch.ones(len(t), dtype=torch.bool)
-    centre, _ = pc.loss(view, pixel, o, d, t, n, hit)
-    du, dv = pixel_axes(cams)
-    g = torch.Generator().manual_seed(3)
-    j = torch.rand(len(t), 2, generator=g, dtype=torch.float64) * 0.9 + 0.05          # away from the centre
-    j = j * torch.where(torch.rand(len(t), 2, generator=g) < 0.5, -0.5, 0.5).double()
-    d_cam = d / (d * cams.R[view, 2]).sum(-1, keepdim=True)                           # camera Z = 1, as pixel_axes
-    d_jit = torch.nn.functional.normalize(d_cam + j[:, :1] * du[view] + j[:, 1:] * dv[view], dim=-1)
-    t_jit = -o[:, 1] / d_jit[:, 1]                                                    # exact hit of the plane y = 0
-    got, figs = pc.loss(view, pixel, o, d_jit, t_jit, n, hit, centre_dirs=d)
-    assert figs["ncc_rays"] > 0.9
-    assert float(got) == pytest.approx(float(centre), rel=1e-9, abs=1e-12)
-    shifted, _ = pc.loss(view, pixel, o, d_jit, t_jit, n, hit)                        # the patch off its pixel
-    assert float(shifted) > float(centre) + 1e-4
-
-
 def test_under_bf16_autocast_it_computes_in_float32(scene):
     """The step's forward runs under ``precision=bf16`` autocast: the loss must not warp in bf16."""
     from l3d_app.runtime.precision import autocast

@@ -1,5 +1,4 @@
-"""Fast neural SDF pieces: grid Jacobian vs autograd, finite differences vs analytic gradients,
-sphere init with a near-zero grid, the trilinear SDF cache, near-surface sample placement,
+"""Fast neural SDF pieces: grid Jacobian vs autograd, sphere init with a near-zero grid, the trilinear SDF cache, near-surface sample placement,
 the learnable-beta VolSDF density."""
 
 import math
@@ -9,10 +8,10 @@ import pytest
 import torch
 
 from l3d_app.errors import UserError
-from l3d_app.geometry.sdf import Sphere, Torus
+from l3d_app.geometry.sdf import Sphere
 from l3d_app.losses.eikonal import eikonal_loss, sdf_gradient
 from l3d_app.models.encodings import GridEncoding
-from l3d_app.models.sdf_grid import SDFGridField, finite_difference_gradient, grid_encode_with_jacobian
+from l3d_app.models.sdf_grid import SDFGridField, grid_encode_with_jacobian
 from l3d_app.render.sdf.densities import LaplaceDensity, volsdf_density
 from l3d_app.render.volume.estimators import SDFCacheProposal
 from l3d_app.render.sdf.neus import NeuSDensity
@@ -49,7 +48,7 @@ def test_grid_jacobian_matches_autograd_dense_hashed_and_outside():
                                    == 0).all())
 
 
-def test_field_gradient_analytic_equals_autograd_and_fd_is_close():
+def test_field_gradient_analytic_equals_autograd():
     field = _random_field()
     x = torch.rand(200, 3, dtype=D) * 1.8 - 0.9
     f, feat, g = field.sdf_features_gradient(x)
@@ -59,27 +58,6 @@ def test_field_gradient_analytic_equals_autograd_and_fd_is_close():
     # the analytic gradient is differentiable w.r.t. the table (eikonal backprop, no double backward)
     (gt,) = torch.autograd.grad(eikonal_loss(g), field.encoding.table)
     assert torch.isfinite(gt).all() and gt.abs().sum() > 0
-    # central differences: O(h^2) inside a cell, so most points agree closely
-    g_fd = finite_difference_gradient(field.sdf, x, 1e-4)
-    close = ((g_fd - g).norm(dim=-1) < 1e-2 * (1 + g.norm(dim=-1)))
-    assert close.float().mean() > 0.9
-    fd_field = _random_field(gradient="fd", fd_step=1e-4)
-    torch.testing.assert_close(fd_field.sdf_features_gradient(x)[2], g_fd)
-
-
-@pytest.mark.parametrize("sdf", [Sphere(0.6), Torus(0.6, 0.2)])
-def test_finite_difference_eikonal_equals_autograd_on_analytic_sdfs(sdf):
-    x = torch.rand(500, 3, generator=torch.Generator().manual_seed(0), dtype=D) * 1.6 - 0.8
-    # away from the kinks: the sphere's centre, the torus's Y axis (|p_xz| = 0) and core circle
-    rho = x[:, [0, 2]].norm(dim=-1)
-    x = x[(x.norm(dim=-1) > 0.1) & (rho > 0.1) & (torch.hypot(rho - 0.6, x[:, 1]) > 0.1)]
-    g_auto = sdf_gradient(sdf, x, create_graph=False)
-    g_fd = finite_difference_gradient(sdf, x, 1e-4)
-    torch.testing.assert_close(g_fd.norm(dim=-1), g_auto.norm(dim=-1), atol=1e-5, rtol=0)
-    torch.testing.assert_close(g_fd, g_auto, atol=1e-5, rtol=0)
-    assert float(eikonal_loss(g_fd)) < 1e-10
-    with pytest.raises(UserError):
-        finite_difference_gradient(sdf, x, 0.0)
 
 
 def test_sphere_init_with_near_zero_grid_and_mlp_only_pretraining():
@@ -202,7 +180,7 @@ def test_evaluation_renders_skip_the_field_on_rays_that_pass_no_surface():
     white = torch.ones(3)
     renders = {}
     for skip in (0.0, 1e-4):
-        est = SDFCacheProposal(BOX, n_coarse=96, n_fine=16, resolution=32, skip_opacity=skip)
+        est = SDFCacheProposal(BOX, n_coarse=96, n_fine=16, resolution=32, skip_opacity=skip, eval_anchor=0)
         est.update(0, SimpleNamespace(sdf=sph))
         calls["n"] = 0
         with torch.no_grad():
@@ -253,7 +231,7 @@ def test_grazing_rays_are_as_opaque_as_the_exact_integral(radius, beta):
     exact = _grazing_opacity_exact(radius, beta, miss_by.double())
 
     def opacity(max_segment, perturb):
-        est = SDFCacheProposal(box, n_coarse=128, n_fine=16, resolution=64, max_segment=max_segment)
+        est = SDFCacheProposal(box, n_coarse=128, n_fine=16, resolution=64, max_segment=max_segment, eval_anchor=0)
         est.update(0, sphere)
         gen = torch.Generator().manual_seed(0)
         with torch.no_grad():
@@ -272,28 +250,9 @@ def test_grazing_rays_are_as_opaque_as_the_exact_integral(radius, beta):
         SDFCacheProposal(box, max_segment=0.0)
 
 
-def test_colour_grid_feeds_colour_only():
-    """``color_grid_levels`` > 0: the appearance grid changes the colour, never the SDF or its
-    gradient (no gradient path from the SDF into it), and the colour's gradient reaches it."""
-    field = _random_field(color_grid_levels=3, color_grid_max_resolution=64, color_grid_log2_hashmap_size=12)
-    x = torch.rand(100, 3, dtype=D) * 1.8 - 0.9
-    dirs = torch.nn.functional.normalize(torch.randn(100, 3, dtype=D), dim=-1)
-    f0, rgb0, g0 = field.sdf_rgb_grad(x, dirs)
-    with torch.no_grad():
-        field.color_encoding.table.uniform_(-0.5, 0.5)
-    f1, rgb1, g1 = field.sdf_rgb_grad(x, dirs)
-    torch.testing.assert_close(f1, f0, rtol=0, atol=0)
-    torch.testing.assert_close(g1, g0, rtol=0, atol=0)
-    assert (rgb1 - rgb0).abs().max() > 1e-3
-    assert torch.autograd.grad(f1.sum() + g1.sum(), field.color_encoding.table, allow_unused=True)[0] is None
-    (gc,) = torch.autograd.grad(rgb1.sum(), field.color_encoding.table)
-    assert gc.abs().sum() > 0
-    assert _random_field().color_encoding is None          # off by default: the colour MLP's input unchanged
-
-
-@pytest.mark.parametrize("kw", [{"radius": 0.0}, {"radius": -1.0}, {"fd_step": 0.0}])
-def test_non_positive_radius_or_fd_step_is_a_user_error(kw):
-    with pytest.raises(UserError, match="radius > 0 and fd_step > 0"):
+@pytest.mark.parametrize("kw", [{"radius": 0.0}, {"radius": -1.0}])
+def test_non_positive_radius_is_a_user_error(kw):
+    with pytest.raises(UserError, match="radius > 0"):
         SDFGridField(scene_box=BOX, n_levels=2, base_resolution=4, max_resolution=8, log2_hashmap_size=10, **kw)
 
 
@@ -317,7 +276,7 @@ def test_evaluation_sample_counts_apply_without_gradients_only():
             out = render_sdf_rays(colour, o, d, est, dens, background=torch.ones(3))
         return out, calls["n"]
 
-    kw = dict(resolution=32, skip_opacity=0.0)
+    kw = dict(resolution=32, skip_opacity=0.0, eval_anchor=0)
     base, n_base = render(SDFCacheProposal(BOX, n_coarse=64, n_fine=8, **kw), False)
     more, n_more = render(SDFCacheProposal(BOX, n_coarse=64, n_fine=8, eval_n_coarse=128, eval_n_fine=32, **kw), False)
     train, n_train = render(SDFCacheProposal(BOX, n_coarse=64, n_fine=8, eval_n_coarse=128, eval_n_fine=32, **kw), True)
@@ -335,23 +294,14 @@ def test_sdf_cache_cell_size_is_the_widest_vertex_spacing():
     assert cache.cell_size == pytest.approx(1.0)        # y: 4 / (5 - 1)
 
 
-def test_cache_refresh_schedule_every_then_late_every():
-    """The cache re-reads the field at step 0 and every ``every`` steps before ``late_from``, then every
-    ``late_every`` steps (a written-out list, not the rule); without ``late_every`` every ``every`` steps
-    throughout; bad values are a UserError."""
+def test_cache_refresh_schedule_every():
+    """The cache re-reads the field at step 0 and every ``every`` steps (a written-out list, not the rule);
+    a bad value is a UserError."""
     sph = Sphere(0.5)
     read = []
-
-    def refreshed_steps(**kw):
-        read.clear()
-        est = SDFCacheProposal(BOX, n_coarse=8, n_fine=2, resolution=4, **kw)
-        for step in range(0, 90):
-            est.update(step, SimpleNamespace(sdf=lambda p, step=step: (read.append(step), sph(p))[1]))
-        return sorted(set(read))
-
-    assert refreshed_steps(every=8, late_every=32, late_from=25) == [0, 8, 16, 24, 32, 64]
-    assert refreshed_steps(every=8) == list(range(0, 90, 8))
-    assert refreshed_steps(every=8, late_every=32, late_from=0) == [0, 32, 64]
-    for bad in (dict(late_every=0), dict(late_from=-1), dict(every=0)):
-        with pytest.raises(UserError):
-            SDFCacheProposal(BOX, **bad)
+    est = SDFCacheProposal(BOX, n_coarse=8, n_fine=2, resolution=4, every=8)
+    for step in range(0, 30):
+        est.update(step, SimpleNamespace(sdf=lambda p, step=step: (read.append(step), sph(p))[1]))
+    assert sorted(set(read)) == [0, 8, 16, 24]
+    with pytest.raises(UserError):
+        SDFCacheProposal(BOX, every=0)

@@ -30,7 +30,7 @@ def test_slurm_launcher_composes():
     assert cfg.hydra.launcher.partition == "gpu" and "Slurm" in cfg.hydra.launcher._target_
 
 
-@pytest.mark.parametrize("sweeper, param", [("optuna_volsdf", "beta"), ("optuna_nerf", "lr")])
+@pytest.mark.parametrize("sweeper, param", [("optuna_volsdf", "density.beta"), ("optuna_nerf", "optim.lr")])
 def test_optuna_sweepers_compose(sweeper, param):
     needs("hydra_plugins.hydra_optuna_sweeper")
     cfg = compose_hydra(f"hydra/sweeper={sweeper}", "objective=val_psnr")

@@ -10,52 +10,42 @@ from l3d_app.tasks.common import require_nonnegative, require_positive
 
 @pytest.mark.parametrize("value", [-1, -0.5, "x", True, None])
 def test_nonnegative_rejects_and_names_the_key(value):
-    cfg = OmegaConf.create({"w_free": 0.1, "free_softness": value})
-    with pytest.raises(UserError, match="free_softness must be a number >= 0"):
-        require_nonnegative(cfg, "w_free", "free_softness")
+    cfg = OmegaConf.create({"w_chamfer": 0.1, "w_edge": value})
+    with pytest.raises(UserError, match="w_edge must be a number >= 0"):
+        require_nonnegative(cfg, "w_chamfer", "w_edge")
 
 
 def test_nonnegative_accepts_zero_and_positive_and_positive_rejects_zero():
-    cfg = OmegaConf.create({"w_free": 0, "free_softness": 0.01})
-    require_nonnegative(cfg, "w_free", "free_softness")
-    with pytest.raises(UserError, match="w_free must be a positive number"):
-        require_positive(cfg, "w_free")
+    cfg = OmegaConf.create({"w_chamfer": 0, "w_edge": 0.01})
+    require_nonnegative(cfg, "w_chamfer", "w_edge")
+    with pytest.raises(UserError, match="w_chamfer must be a positive number"):
+        require_positive(cfg, "w_chamfer")
 
 
 @pytest.mark.parametrize("task, override, needle", [
     ("gs_train", "sh_degree=7", "sh_degree must be 0, 1, 2 or 3"),       # used to fail when the schedule reached degree 4
     ("gs_train", "tile_size=0", "tile_size must be a positive number"),   # used to end in ZeroDivisionError
-    ("volsdf", "eikonal_points=-1", "eikonal_points must be a number >= 0"),  # used to end in a RuntimeError
+    ("volsdf", "+losses.eikonal.points=-1", "the eikonal term's points must be an integer >= 0"),
     ("volsdf", "mesh_resolution=1", "mesh_resolution must be an integer >= 2"),  # used to fail after training
-    ("volsdf", "level_every=-2", "level_every must be a number >= 0"),
-    ("volsdf", "cache_late_every=0", "cache_late_every must be a positive number"),
-    ("volsdf", "cache_late_from=-1", "cache_late_from must be a number >= 0"),
-    ("volsdf", "free_space.opacity=1.5", "free_space.opacity must lie in"),
-    ("volsdf", "free_space.margin=-0.1", "free_space.margin must be a number >= 0"),
-    ("volsdf", "free_space.margin_beta=-1", "free_space.margin_beta must be a number >= 0"),
-    ("volsdf", "free_space.ray_weight=-0.1", "free_space.ray_weight must be a number >= 0"),
-    ("volsdf", "free_space.save_levels=[0.1,1.5]", "free_space.save_levels must be a list of opacity levels"),
-    ("volsdf", "free_space.w_front=-1", "free_space.w_front must be a number >= 0"),
-    ("volsdf", "free_space.ray_cut=sideways", "free_space.ray_cut must be none or multi_view"),
-    ("volsdf", "free_space.ray_loss=depth", "free_space.ray_loss must be opacity or log_depth"),
-    ("volsdf", "free_space.ray_margin_beta=-1", "free_space.ray_margin_beta must be null or a number >= 0"),
-    ("volsdf", "free_space.ray_margin=0.06", r"free_space.ray_margin must be null or a number in \[0, free_space.margin\]"),
-    ("volsdf", "free_space.points=0", "free_space.points must be a positive number"),
-    ("volsdf", "free_space.loss=inside", "free_space.loss must be occupancy, density or outside"),
-    ("volsdf", "free_space.until=0", "free_space.until must be null or lie in"),
-    ("volsdf", "ncc.size=4", "ncc.size must be odd"),
-    ("volsdf", "ncc.sources=0", "ncc.sources must be a positive integer"),
-    ("volsdf", "ncc.best=5", "ncc.best must be at most ncc.sources"),
-    ("volsdf", "ncc.weight=-1", "ncc.weight must be a number >= 0"),
-    ("volsdf", "ncc.until=0", "ncc.until must be null or lie in"),
+    ("volsdf", "stages.coarse_to_fine.every=-2", "coarse_to_fine every must be an integer >= 0"),
+    ("volsdf", "stages.free_space.opacity=1.5", "free_space opacity must lie in"),
+    ("volsdf", "stages.free_space.margin=-0.1", "free_space margin must be a number >= 0"),
+    ("volsdf", "stages.free_space.w_front=-1", "free_space w_front must be a number >= 0"),
+    ("volsdf", "losses.free_points.margin_beta=-1", "margin_beta must be a number >= 0"),
+    ("volsdf", "losses.free_points.points=0", "the free-points term's points must be a positive integer"),
+    ("volsdf", "losses.free_rays.weight=-0.1", "a loss term's weight must be a number >= 0"),
+    ("volsdf", "+losses.free_rays.until=0", "until must lie after start"),
+    ("volsdf", "losses.ncc.size=4", "the patch term's size must be odd"),
+    ("volsdf", "+losses.ncc.sources=0", "the patch term's sources must be a positive integer"),
+    ("volsdf", "+losses.ncc.best=5", "the patch term's best must be at most its sources"),
+    ("volsdf", "losses.ncc.weight=-1", "a loss term's weight must be a number >= 0"),
+    ("volsdf", "losses.ncc.until=-0.5", "until must be null or a number >= 0"),
+    ("volsdf", "+losses.mask.typo=1", "unknown key 'typo' for loss term 'mask_bce'"),
     ("volsdf", "beta=-0.1", "beta must be > 0"),                           # used to blame beta_min, after the data
-    ("volsdf", "beta_end=0", "beta_end must be > 0"),
-    ("volsdf", "beta_mode=foo", "density mode must be anneal, learnable or fixed"),
+    ("volsdf", "density.beta_end=0", "beta_end must be > 0"),
+    ("volsdf", "density.mode=foo", "density mode must be anneal, learnable or fixed"),
     ("volsdf", "density=neus s=-1", "s must be > 0"),
-    ("volsdf", "density=neus s_mode=anneal s_end=0", "s mode anneal needs s_end > 0"),
-    ("svr_train", "lr_floor=-1", "lr_floor must be a number >= 0"),          # used to train with a negative LR at the end
-    ("svr_train", "error_max=0", "error_max must be a positive number"),
-    ("svr_train", "eval_view=-1", "eval_view must be a number >= 0"),
+    ("volsdf", "density=neus density.mode=anneal density.s_end=0", "s mode anneal needs s_end > 0"),
 ])
 def test_task_rejects_bad_values_before_loading_data(compose, task, override, needle):
     """Each check runs at the top of the task, before the data is read or a step is taken."""

@@ -96,8 +96,8 @@ def test_anchored_samples_sit_in_a_transition_the_cache_cannot_resolve():
 
 
 @pytest.mark.parametrize("kw", [dict(anchor=16), dict(anchor=-1), dict(anchor=4, anchor_window=(1.0, 1.0)),
-                                dict(anchor=4, refine_evals=1), dict(eval_anchor=16),
-                                dict(eval_n_fine=8, eval_anchor=8), dict(anchor=4, anchor_when="sometimes")])
+                                dict(anchor=4, refine_evals=1), dict(eval_anchor=-1),
+                                dict(anchor=4, anchor_when="sometimes")])
 def test_bad_anchor_settings_are_refused(kw):
     with pytest.raises(ValueError, match="anchor"):
         SDFCacheProposal(BOX, n_fine=16, **kw)

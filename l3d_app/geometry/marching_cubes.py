@@ -26,7 +26,7 @@ def grid_points(lo: Sequence[float], hi: Sequence[float], resolution: int,
 
 
 # Peak host memory of sdf_to_mesh per grid point: the float32 values, their float64 copy and
-# skimage's work; 17.2 / 16.6 bytes measured at 256^3 / 384^3 (a sphere, 2026-11-29, ru_maxrss).
+# skimage's work; 17.2 / 16.6 bytes measured at 256^3 / 384^3 (a sphere, ru_maxrss).
 GRID_BYTES_PER_POINT = 17
 
 
@@ -41,7 +41,7 @@ def require_grid_memory(resolution: int, available: Optional[int], what: str = "
 
 
 # Points per SDF call on CPU: an MLP's activations for this many points stay in cache. Measured
-# on 2 AVX2 cores (2026-11-28): volsdf's grid SDF at 128^3 2.8-4.0 s in 2^14-point calls against
+# on 2 AVX2 cores: volsdf's grid SDF at 128^3 2.8-4.0 s in 2^14-point calls against
 # 8.3-10.7 s in 2^18; neural_sdf's 128-wide MLP at 96^3 2.3-2.6 against 3.9-4.0 s.
 CPU_CHUNK = 1 << 14
 # On an accelerator larger calls amortise the launches.

@@ -21,9 +21,12 @@ from typing import Dict, Optional, Tuple
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras
 from l3d_app.geometry.rays import pixel_axes
 from l3d_app.geometry.textures import sample_texture_indexed
+from l3d_app.losses.terms import Batch, LossTerm
+from l3d_app.registry import LOSS_TERMS
 from l3d_app.render.volume.estimators.zero_crossing import crossing_bracket
 
 
@@ -96,8 +99,6 @@ class PatchConsistency:
         min_std: grey std (0-1 levels) below which a reference patch has no texture to match;
         min_cos: least ``|n . d|`` between the normal and the reference ray (grazing planes warp
             unstably), and least cosine between the normal and each source's direction to ``x``.
-        masks: (V, H, W) the images' coverage (alpha) or None; with it only reference patches whose
-            every pixel has coverage >= ``min_alpha`` count (a patch across a silhouette is not one plane).
     """
 
     images: torch.Tensor
@@ -107,8 +108,6 @@ class PatchConsistency:
     best: int = 2
     min_std: float = 0.01
     min_cos: float = 0.2
-    masks: Optional[torch.Tensor] = None
-    min_alpha: float = 0.5
 
     @staticmethod
     def build(images: torch.Tensor, cameras: Cameras, n_sources: int = 4, **kw) -> "PatchConsistency":
@@ -116,18 +115,14 @@ class PatchConsistency:
         return PatchConsistency(grey(images).contiguous(), cameras, nearest_views(cameras.centers(), n_sources), **kw)
 
     def loss(self, view: torch.Tensor, pixel: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
-             t_hit: torch.Tensor, normal: torch.Tensor, hit: torch.Tensor,
-             centre_dirs: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, Dict[str, float]]:
+             t_hit: torch.Tensor, normal: torch.Tensor, hit: torch.Tensor) -> Tuple[torch.Tensor, Dict[str, float]]:
         """Mean of ``(1 - NCC) / 2`` over the rays that count, and figures for the log.
 
         Args:
             view: (R,) long training view of each ray; ``pixel`` (R, 2) long its (row, column).
-            origins, dirs: (R, 3) the rays (unit ``dirs``) through those pixels' centres, or through
-                any point of those pixels when ``centre_dirs`` is given (jittered training rays).
+            origins, dirs: (R, 3) the rays (unit ``dirs``) through those pixels' centres.
             t_hit: (R,) distance to the surface along the ray; ``normal`` (R, 3) its normal there
                 (any length, either sign); ``hit`` (R,) bool rays that reach a surface.
-            centre_dirs: (R, 3) unit directions through the pixels' centres, where the patch is
-                centred (None: ``dirs``). The plane still passes through ``origins + t_hit * dirs``.
         Returns:
             ``(loss (), {"ncc_rays": share of rays that count, "ncc": their mean best NCC})``; a loss of
             0 (no gradient) where no ray counts. Computed in at least float32 with autocast off (pixel
@@ -135,12 +130,11 @@ class PatchConsistency:
         """
         work = torch.promote_types(torch.promote_types(origins.dtype, torch.float32), self.cameras.R.dtype)
         with torch.autocast(origins.device.type, enabled=False):
-            centre = dirs if centre_dirs is None else centre_dirs
-            return self._loss(view, pixel, origins.to(work), dirs.to(work), t_hit.to(work), normal.to(work), hit,
-                              centre.to(work))
+            return self._loss(view, pixel, origins.to(work), dirs.to(work), t_hit.to(work), normal.to(work), hit)
 
-    def _loss(self, view, pixel, origins, dirs, t_hit, normal, hit, centre) -> Tuple[torch.Tensor, Dict[str, float]]:
-        """:meth:`loss` in the inputs' precision (``centre``: the unit rays through the pixel centres)."""
+    def _loss(self, view, pixel, origins, dirs, t_hit, normal, hit) -> Tuple[torch.Tensor, Dict[str, float]]:
+        """:meth:`loss` in the inputs' precision."""
+        centre = dirs
         cams, dtype = self.cameras, origins.dtype
         h, w = cams.height, cams.width
         off = patch_offsets(self.size, dtype, origins.device)                        # (P, 2)
@@ -149,8 +143,6 @@ class PatchConsistency:
         at = view[:, None] * (h * w) + rows.clamp(0, h - 1) * w + cols.clamp(0, w - 1)   # (R, P) flat pixels
         ref = self.images.reshape(-1)[at]
         textured = ref.std(dim=-1) >= self.min_std                                    # (R,)
-        if self.masks is not None:       # patches wholly on the object: one surface, no silhouette across them
-            in_ref = in_ref & (self.masks.reshape(-1)[at] >= self.min_alpha).all(-1)
         n = torch.nn.functional.normalize(normal, dim=-1)
         cos_ref = (n * centre).sum(-1)
         x = origins + t_hit[:, None] * dirs                                           # (R, 3)
@@ -179,3 +171,42 @@ class PatchConsistency:
         best_ncc = top[counts].mean(-1)
         return ((1.0 - best_ncc) / 2).mean(), {"ncc_rays": float(counts.float().mean()),
                                                 "ncc": float(best_ncc.detach().mean())}
+
+
+@LOSS_TERMS.register("patch_ncc")
+class PatchNCCLoss(LossTerm):
+    """:meth:`PatchConsistency.loss` of each batch ray's first zero crossing (from its render's samples) and
+    normal, over the training views: ``(1 - NCC) / 2`` of ``size`` x ``size`` grey patches warped into the
+    ``sources`` nearest training views (the ``best`` of them averaged); logs ``ncc_rays`` (share of rays that
+    count) and ``ncc``. Patches assume surfaces that look alike from nearby views: the shipped schedule fades
+    it out by half the steps (kept to the end it hurt a glossy development scene, docs/measured/volsdf.md)."""
+
+    def __init__(self, weight: float = 0.1, until: Optional[float] = 0.5, start: float = 0.0, size: int = 5,
+                 sources: int = 4, best: int = 2, min_std: float = 0.01, min_cos: float = 0.2):
+        super().__init__(weight, start, until)
+        for key, value in (("min_std", min_std), ("min_cos", min_cos)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+                raise UserError(f"the patch term's {key} must be a number >= 0, got {value!r}")
+        for key, value in (("size", size), ("sources", sources), ("best", best)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise UserError(f"the patch term's {key} must be a positive integer, got {value!r}")
+        if size % 2 == 0:
+            raise UserError(f"the patch term's size must be odd (a patch centred on its pixel), got {size}")
+        if best > sources:
+            raise UserError(f"the patch term's best must be at most its sources ({sources}), got {best}")
+        self.options = {"size": size, "best": best, "min_std": float(min_std), "min_cos": float(min_cos)}
+        self.sources = sources
+
+    def setup(self, state) -> bool:
+        rays = state.rays
+        self.patches = PatchConsistency.build(rays.images, rays.cameras, n_sources=self.sources, **self.options)
+        return True
+
+    def __call__(self, batch: Batch) -> Tuple[torch.Tensor, Dict[str, float]]:
+        rays, out, n = batch.state.rays, batch.out, batch.rays.shape[0]
+        hw = rays.height * rays.width
+        view, rest = batch.rays // hw, batch.rays % hw
+        t_hit, normal, hit = surface_crossing(out["t"].reshape(n, -1), out["sdf"].reshape(n, -1),
+                                              out["grad"].reshape(n, -1, 3))
+        return self.patches.loss(view, torch.stack([rest // rays.width, rest % rays.width], -1), batch.origins,
+                                 batch.dirs, t_hit, normal, hit)

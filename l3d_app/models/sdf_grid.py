@@ -18,14 +18,11 @@ Neuralangelo recipe in pure PyTorch:
   scalar per point) and contracted with that Jacobian. ``grad f`` is then an ordinary
   differentiable expression: the eikonal loss and normal-conditioned colour backpropagate
   with one first-order backward (autograd's create_graph path through the hashed gather is
-  about twice as slow on CPU). :func:`finite_difference_gradient` is the Neuralangelo-style
-  alternative (``gradient=fd``: central differences, step ``fd_step``, 6 extra evaluations).
+  about twice as slow on CPU).
 * **Coarse-to-fine**: only the first ``active_levels`` grid levels feed the MLP (the others
   are multiplied by 0); the task raises it during training (Neuralangelo's progressive levels).
 * **Colour** ``rgb = sigmoid(MLP([x, n, d, features]))`` with the unit normal ``n = grad f /
-  |grad f|``, the view direction ``d`` (optional) and the SDF features; with
-  ``color_grid_levels`` > 0 also the features of a second, appearance-only grid (the SDF never
-  reads it), so fine texture has a colour-side explanation.
+  |grad f|``, the view direction ``d`` (optional) and the SDF features.
 
 ``forward(points, dirs) -> (sdf (N,), rgb (N, 3))`` like :class:`~l3d_app.models.sdf_net.SDFField`;
 ``sdf(points) -> (...)``; ``sdf_rgb_grad(points, dirs) -> (sdf, rgb, grad (N, 3))``.
@@ -33,7 +30,7 @@ Neuralangelo recipe in pure PyTorch:
 
 from __future__ import annotations
 
-from typing import Callable, Optional, Sequence, Tuple
+from typing import Optional, Sequence, Tuple
 
 import torch
 
@@ -79,19 +76,6 @@ def grid_encode_with_jacobian(enc: GridEncoding, x: torch.Tensor) -> Tuple[torch
     return value.reshape(x.shape[0], enc.out_dim), jac.reshape(x.shape[0], enc.out_dim, 3)
 
 
-def finite_difference_gradient(fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor,
-                               step: float) -> torch.Tensor:
-    """(N, 3) central-difference gradient ``(f(x + h e_a) - f(x - h e_a)) / 2h`` of
-    ``fn: (M, 3) -> (M,)`` at x (N, 3), ``h = step`` (world units); differentiable w.r.t.
-    ``fn``'s parameters; error O(h^2) for smooth ``fn`` (Neuralangelo's numerical gradient)."""
-    if not step > 0:
-        raise UserError(f"finite-difference step must be > 0, got {step}")
-    eye = torch.eye(3, dtype=x.dtype, device=x.device) * float(step)
-    pts = torch.cat([x[None] + eye[:, None, :], x[None] - eye[:, None, :]], dim=0)   # (6, N, 3)
-    f = fn(pts.reshape(-1, 3)).reshape(2, 3, x.shape[0])
-    return ((f[0] - f[1]) / (2.0 * float(step))).t()
-
-
 class _Softplus100(torch.nn.Module):
     """Softplus(beta) and its derivative sigmoid(beta z) (for the forward-mode Jacobian)."""
 
@@ -117,47 +101,31 @@ class SDFGridField(torch.nn.Module):
         hidden, n_layers: SDF MLP width / hidden layers; sdf_features: features passed on.
         radius: the initial sphere (world units).
         color_hidden, color_layers: colour MLP (ReLU); use_normals / use_viewdirs: inputs.
-        gradient: ``analytic`` (grid Jacobian, exact) or ``fd`` (central differences, ``fd_step``).
         softplus_beta: sharpness of the SDF MLP's Softplus.
-        color_grid_levels: > 0: a second grid encoding (that many levels, 2 features each, from
-            16 to ``color_grid_max_resolution`` vertices per axis, ``2^color_grid_log2_hashmap_size``
-            rows per hashed level) read by the colour MLP only, so that texture finer than the
-            geometry can be explained by colour instead of being carved into the SDF; 0: off.
     """
 
     def __init__(self, scene_box=None, n_levels: int = 8, n_features: int = 2, base_resolution: int = 16,
                  max_resolution: int = 128, log2_hashmap_size: int = 17, init_scale: float = 1e-4,
                  hidden: int = 64, n_layers: int = 1, sdf_features: int = 15, radius: float = 0.85,
                  color_hidden: int = 64, color_layers: int = 2, use_normals: bool = True,
-                 use_viewdirs: bool = True, gradient: str = "analytic", fd_step: float = 0.005,
-                 softplus_beta: float = 100.0, color_grid_levels: int = 0,
-                 color_grid_max_resolution: int = 256, color_grid_log2_hashmap_size: int = 18):
+                 use_viewdirs: bool = True, softplus_beta: float = 100.0):
         super().__init__()
         if scene_box is None:
             raise UserError("sdf_grid_field needs the scene box (the data source provides it)")
-        if gradient not in ("analytic", "fd"):
-            raise UserError(f"gradient must be analytic or fd, got {gradient!r}")
         if int(n_layers) < 1 or int(hidden) < 1 or int(color_layers) < 0:
             raise UserError(f"sdf_grid_field needs n_layers >= 1, hidden >= 1, color_layers >= 0, "
                             f"got {n_layers}, {hidden}, {color_layers}")
-        if not float(radius) > 0 or not float(fd_step) > 0:
-            raise UserError(f"sdf_grid_field needs radius > 0 and fd_step > 0 (world units), got {radius}, {fd_step}")
+        if not float(radius) > 0:
+            raise UserError(f"sdf_grid_field needs radius > 0 (world units), got {radius}")
         self.encoding = GridEncoding(n_levels, n_features, base_resolution, max_resolution, log2_hashmap_size,
                                      bounds=scene_box, init_scale=init_scale)
         self.radius, self.n_features = float(radius), int(sdf_features)
-        self.gradient_mode, self.fd_step = gradient, float(fd_step)
         self.use_normals, self.use_viewdirs = bool(use_normals), bool(use_viewdirs)
         dims = [3 + self.encoding.out_dim] + [int(hidden)] * int(n_layers)
         self.layers = torch.nn.ModuleList(torch.nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
         self.out = torch.nn.Linear(dims[-1], 1 + self.n_features)
         self.act = _Softplus100(softplus_beta)
         d = 3 + 3 * self.use_normals + 3 * self.use_viewdirs + self.n_features
-        self.color_encoding = None
-        if int(color_grid_levels) > 0:     # appearance-only features: no gradient path into the SDF
-            self.color_encoding = GridEncoding(int(color_grid_levels), 2, 16, int(color_grid_max_resolution),
-                                               int(color_grid_log2_hashmap_size), bounds=scene_box,
-                                               init_scale=init_scale)
-            d += self.color_encoding.out_dim
         layers = []
         for _ in range(int(color_layers)):
             layers += [torch.nn.Linear(d, int(color_hidden)), torch.nn.ReLU()]
@@ -215,10 +183,7 @@ class SDFGridField(torch.nn.Module):
 
     def sdf_features_gradient(self, x: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """SDF (N,), features (N, F) and ``grad f`` (N, 3) at x (N, 3), all differentiable
-        w.r.t. the parameters (``gradient=analytic``: exact; ``fd``: central differences)."""
-        if self.gradient_mode == "fd":
-            f, feat = self.sdf_features(x)
-            return f, feat, finite_difference_gradient(lambda p: self.sdf_features(p)[0], x, self.fd_step)
+        w.r.t. the parameters (exact: :func:`grid_encode_with_jacobian` through the MLP)."""
         mask = self._mask()
         enc, jac = grid_encode_with_jacobian(self.encoding, x)
         h = torch.cat([x, enc * mask], dim=-1)                                        # (N, D)
@@ -248,8 +213,6 @@ class SDFGridField(torch.nn.Module):
                 raise UserError("this sdf_grid_field uses view directions: pass dirs")
             parts.append(dirs)
         parts.append(features)
-        if self.color_encoding is not None:
-            parts.append(self.color_encoding(x))
         return torch.sigmoid(self.color(torch.cat(parts, dim=-1)))
 
     def sdf_rgb_grad(self, points: torch.Tensor, dirs: Optional[torch.Tensor] = None
@@ -265,11 +228,12 @@ class SDFGridField(torch.nn.Module):
         return f, rgb
 
 
-def pretrain_field(field: torch.nn.Module, radius: float, bounds: Tuple[Sequence[float], Sequence[float]],
-                   steps: int, generator: Optional[torch.Generator] = None) -> float:
-    """Sphere pretraining of either SDF model (grid field: MLP only; MLP field: the SDF net)."""
+def pretrain_field(field: torch.nn.Module, bounds: Tuple[Sequence[float], Sequence[float]], steps: int,
+                   generator: Optional[torch.Generator] = None) -> float:
+    """Sphere pretraining of either SDF model to its own initial sphere (grid field: MLP only; MLP field
+    (:class:`~l3d_app.models.sdf_net.SDFField`): the SDF net); the final mean ``|f - sdf_sphere|`` (world units)."""
     if isinstance(field, SDFGridField):
         return field.pretrain_sphere(bounds, steps=steps, generator=generator)
     from l3d_app.models.sdf_net import pretrain_sphere
 
-    return pretrain_sphere(field.sdf_net, radius, bounds, steps=steps, generator=generator)
+    return pretrain_sphere(field.sdf_net, field.sdf_net.radius, bounds, steps=steps, generator=generator)

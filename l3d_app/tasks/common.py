@@ -18,13 +18,6 @@ from l3d_app.runtime.progress import progress
 from l3d_app.runtime.training import LoopSpec
 
 
-def require_fade_end(value, key: str) -> None:
-    """UserError unless ``value`` is None or a fraction of the steps in (0, 1]: where a weight that
-    :func:`~l3d_app.losses.free_space.fade_to_zero` fades reaches 0 (``key`` names it in the message)."""
-    if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1):
-        raise UserError(f"{key} must be null or lie in (0, 1] (a fraction of the steps), got {value!r}")
-
-
 def require_mesh_resolution(cfg) -> None:
     """UserError unless ``cfg.mesh_resolution`` is an integer >= 2 (marching-cubes cells per
     axis) whose grid fits the host memory available now: checked before training, since the mesh is

@@ -8,8 +8,7 @@ eikonal loss) at each segment's start; a ``DENSITIES`` module
 (:class:`~l3d_app.render.sdf.densities.VolSDFDensity`, :class:`~l3d_app.render.sdf.neus.NeuSDensity`)
 turns the SDF of a ray's samples into segment optical depths:
 
-- ``volsdf``: ``tau_i = alpha * Psi_beta(-f_i) * (t_end_i - t_start_i)`` (with ``along_ray``: ``f_i / |n_i . d|``,
-  the distance to the surface along the ray, :func:`~l3d_app.render.sdf.densities.distance_along_ray`),
+- ``volsdf``: ``tau_i = alpha * Psi_beta(-f_i) * (t_end_i - t_start_i)``,
 - ``neus``:   ``tau_i = max(log Phi_s(f_i) - log Phi_s(f_{i+1}), 0)`` (last segment: 0).
 """
 
@@ -30,18 +29,14 @@ def sdf_rgb_sigma_fn(sdf_color_fn: SdfColorFn, origins: torch.Tensor, dirs: torc
                      ) -> Callable:
     """``rgb_sigma_fn`` for :func:`render_rays`: ``sdf_color_fn(points (N, 3), dirs (N, 3)) ->
     (sdf (N,), rgb (N, C)[, grad (N, 3)])`` at the segment starts, optical depth by ``density``.
-    The SDF (and the gradient) come back in ``aux``; a density with ``sdf_along_ray`` reads what that
-    makes of the SDF, the gradient and the ray direction."""
-    along_ray = getattr(density, "sdf_along_ray", None)
+    The SDF (and the gradient) come back in ``aux``."""
 
     def fn(t_starts, t_ends, ray_indices):
         pts, d = points_of(origins, dirs, t_starts, ray_indices)
         res = sdf_color_fn(pts, d)
-        grad = res[2] if len(res) > 2 else None
-        f = res[0] if along_ray is None else along_ray(res[0], grad, d)
-        out = {"rgb": res[1], "tau": density.optical_depth(f, t_starts, t_ends, ray_indices), "sdf": res[0]}
-        if grad is not None:
-            out["grad"] = grad
+        out = {"rgb": res[1], "tau": density.optical_depth(res[0], t_starts, t_ends, ray_indices), "sdf": res[0]}
+        if len(res) > 2:
+            out["grad"] = res[2]
         return out
     return fn
 
