@@ -334,3 +334,20 @@ def test_a_part_of_a_validation_is_a_spread_share_of_its_rays():
     assert torch.equal(got[0][1][0], d[0, 0, 0]) and torch.equal(got[0][1][-1], d[1, -1, -1])
     assert torch.equal(got[0][0][-1], o[1, -1, -1])
     assert render_part(lambda o, d: got.append(o), cams, share=0.5, most=100) == 100 / 3200      # at most ``most``
+
+
+def test_a_price_from_before_training_does_not_stop_the_loop_before_it_is_measured_on_a_trained_model(tmp_path):
+    # steps cost 10 s; the task timed the untrained model's validation before training (50 s: eval_price,
+    # the clock starts at 50 s); validations every 200 steps, so the price is untrained until step
+    # max(1, 200 // 5) = 40; 5 evaluations' worth follow the loop; budget 660 s. At that price one more
+    # step passes the budget first after step 30 (350 + 10 + 300 >= 660), where stopping at once would
+    # still keep it (350 + 300 < 660): a stop there would rest on one reading of the untrained model.
+    # The loop trains on to step 40 (those 10 steps fit: 450 < 660) and validates there: the trained
+    # model renders in 5 s (455 + 10 + 30 < 660) -> on, to 10 k + 55 + 10 + 30 >= 660 at k = 57,
+    # whose price (17 steps old, confirmed at 40) stands: stop, the final validation at 57.
+    ctx, trainable, step_fn, eval_fn, seen = _priced_before_training(
+        tmp_path, 660.0, lambda s, before: 50.0 if s < 40 else 5.0)
+    result = train(ctx, trainable, step_fn, LoopSpec(1000, eval_every=200), eval_fn,
+                   TimeBudget.of(ctx, evals_after=5.0, eval_price=50.0))
+    assert result.budget_stop and result.step == 57
+    assert seen["steps"] == [40, 57]

@@ -20,8 +20,9 @@ on any machine and image size:
 * a stop rests on a price measured twice: before stopping, the loop validates again (once per
   validation, or once the price is ``max(1, eval_every // 5)`` steps old); at the same step the
   cheaper timing counts (a stall only adds time), later the new one. A price measured on a model
-  trained fewer than that many steps, which loses the budget even if the loop stops at once,
-  does not stop it before that step (an untrained model's rendering says little of a trained one's);
+  trained fewer than that many steps does not stop the loop before that step while those steps
+  and ``reserve`` fit (an untrained model's rendering says little of a trained one's, and one
+  timing of it is one reading of a shared machine): the loop trains on and validates there;
 * a :class:`~l3d_app.runtime.horizon.Horizon` (``horizon=``) is kept at the step the budget lets
   the loop reach, so schedules that read it end with the run;
 * a stage before training gets a deadline (:meth:`TimeBudget.stage_deadline`), the gifs after it
@@ -313,15 +314,13 @@ class TimeBudget:
 
     def _untrained_price_says_lost(self, done: int, last_eval: Optional[int]) -> bool:
         """Whether a stop at ``done`` waits: the price was measured on a model trained fewer than
-        ``max(1, eval_every // 5)`` steps, the loop has not trained that many yet, stopping now would
-        pass the budget at that price, and those steps and ``reserve`` still fit."""
+        ``max(1, eval_every // 5)`` steps, the loop has not trained that many yet, and those steps
+        and ``reserve`` still fit."""
         if not self.has_eval or self.seconds <= 0:
             return False
         early = max(1, int(self.eval_every or 0) // 5)
         priced_at = last_eval if last_eval is not None else self.start
         if priced_at >= early or done >= early:
             return False
-        elapsed = self.clock()
         steps_left = (early - done) * self.train_seconds / max(1, self.steps)
-        return (elapsed + self.after_loop_seconds(True) >= self.seconds
-                and elapsed + steps_left + self.reserve < self.seconds)
+        return self.clock() + steps_left + self.reserve < self.seconds
