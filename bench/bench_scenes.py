@@ -1,9 +1,9 @@
-"""Benchmark on scenes we did not make: the defaults of train_nerf, gs_train and volsdf (and
+"""Benchmark on scenes we did not make: the defaults of train_nerf, gs_train, volsdf and surfels (and
 the course NeRF within the same 600 s wall limit as the in-run baseline) on every Mitsuba scene of
 ``bench/make_scenes.py``. Run by hand, never in tests:
 
     python bench/make_scenes.py                         # once: renders the scenes (cached)
-    python bench/bench_scenes.py [--scenes dev thin ...] [--methods train_nerf gs_train volsdf nerf_baseline]
+    python bench/bench_scenes.py [--scenes dev thin ...] [--methods train_nerf gs_train volsdf surfels nerf_baseline]
                                  [--threads 2] [--baseline-budget 590] [--reuse] [--doc docs/benchmark_scenes.md]
 
 Each run is ``python main.py task=<method> data=blender data.root=<scene>`` with the task's
@@ -47,7 +47,7 @@ from typing import Dict, List, Optional
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 DEFAULT_SCENES = Path(os.environ.get("L3D_BENCH_SCENES", REPO / "outputs" / ".cache" / "bench_scenes"))
-METHODS = ("train_nerf", "gs_train", "volsdf", "nerf_baseline")
+METHODS = ("train_nerf", "gs_train", "volsdf", "surfels", "nerf_baseline")
 EXTRA = {"train_nerf": ["extract_mesh=true"],
          # the in-run baseline: test PSNR at a fixed budget, no turntable. Its evaluation is slow (128
          # samples per ray, no empty-space skipping: 15-18 s per 128 px view on 2 cores), so the loop
@@ -59,7 +59,9 @@ EXTRA = {"train_nerf": ["extract_mesh=true"],
 DIAGNOSIS = {("thin", "volsdf"): "diagnosis (volsdf's mask loss weight was chosen after reading it)",
              ("around", "volsdf"): "held out; diagnosis of evaluation cost (wall time only)"}
 TARGETS = {"train_nerf": "psnr >= 32", "gs_train": "psnr >= 33",
-           "volsdf": "chamfer <= 1% diag, F1@0.02 obs >= 0.8, psnr >= 28, phantom < 5%"}
+           "volsdf": "chamfer <= 1% diag, F1@0.02 obs >= 0.8, psnr >= 28, phantom < 5%",
+           "surfels": "observed chamfer <= 0.5% diag, F1@0.02 obs >= 0.85, phantom < 5%, psnr >= 30, fewer seconds "
+                      "than volsdf's row"}
 
 
 def run_method(method: str, scene: Path, out: Path, threads: int, baseline_budget: float,

@@ -26,7 +26,9 @@ END = "<!-- ledger_table end -->"
 CHECKS = {"train_nerf": [("psnr", ">=", 32.0, "PSNR", ".2f")],
           "gs_train": [("psnr", ">=", 33.0, "PSNR", ".2f")],
           "volsdf": [("psnr", ">=", 28.0, "PSNR", ".2f"), ("chamfer_pct", "<=", 1.0, "chamfer", ".3f"),
-                     ("f1_02_obs", ">=", 0.8, "F1@0.02", ".3f"), ("phantom_pct", "<", 5.0, "phantom", ".1f")]}
+                     ("f1_02_obs", ">=", 0.8, "F1@0.02", ".3f"), ("phantom_pct", "<", 5.0, "phantom", ".1f")],
+          "surfels": [("psnr", ">=", 30.0, "PSNR", ".2f"), ("chamfer_obs_pct", "<=", 0.5, "observed chamfer", ".3f"),
+                      ("f1_02_obs", ">=", 0.85, "F1@0.02", ".3f"), ("phantom_pct", "<", 5.0, "phantom", ".1f")]}
 
 
 def missed(row: dict) -> str:

@@ -118,28 +118,58 @@ def sdf_to_mesh(sdf: Callable[[torch.Tensor], torch.Tensor], resolution: int = 6
     if len(lo) != 3 or len(hi) != 3 or not all(b > a for a, b in zip(lo, hi)):
         raise UserError(f"bounds must be (lo, hi) with lo < hi per axis, got {bounds}")
     values = evaluate_grid(sdf, lo, hi, R, chunk_size, device, dtype)
-    volume = values.detach().cpu().double().numpy()
-    vmin, vmax = float(np.nanmin(volume)), float(np.nanmax(volume))
-    if not np.isfinite(volume).all():
+    if not bool(torch.isfinite(values).all()):
         raise UserError("the SDF returned NaN or Inf on the marching-cubes grid")
-    if not (vmin < level < vmax):
-        raise UserError(f"the level set sdf = {level} is empty inside bounds {tuple(lo)}..{tuple(hi)} "
-                        f"(SDF values on the grid lie in [{vmin:.4g}, {vmax:.4g}])")
-    from skimage.measure import marching_cubes
-
     spacing = tuple((b - a) / (R - 1) for a, b in zip(lo, hi))
-    # The volume is indexed [i, j, k] = (x, y, z), so vertex columns are x, y, z.
-    # Winding: with skimage's default gradient_direction='descent' the right-hand (cross
-    # product) normal of each face points toward INcreasing values -- outward for an SDF that
-    # is negative inside; 'ascent' would turn every face inward. (Checked in
-    # tests/test_marching_cubes.py by the signed volume, which must be positive.)
-    verts, faces, _, _ = marching_cubes(volume, level=level, spacing=spacing, gradient_direction="descent")
-    verts = torch.from_numpy(np.ascontiguousarray(verts)).to(torch.float32) + torch.tensor(lo, dtype=torch.float32)
-    faces = torch.from_numpy(np.ascontiguousarray(faces)).to(torch.int64)
-    out_device = values.device if device is None else device
-    mesh = Mesh(verts=verts.to(out_device), faces=faces.to(out_device))
+    mesh = grid_to_mesh(values, lo, spacing, level, device=values.device if device is None else device,
+                        what=f"inside bounds {tuple(lo)}..{tuple(hi)}")
     if colors == "normal":
         mesh = Mesh(verts=mesh.verts, faces=mesh.faces, vert_colors=(0.5 + 0.5 * mesh.vertex_normals()).clamp(0, 1))
     elif colors is not None:
         raise UserError(f"colors must be 'normal' or None, got {colors!r}")
     return mesh
+
+
+def grid_to_mesh(values: torch.Tensor, lo: Sequence[float], spacing: Sequence[float], level: float = 0.0,
+                 mask: Optional[torch.Tensor] = None, device=None, what: str = "on the grid") -> Mesh:
+    """Marching cubes (skimage, Lewiner) of a grid of values (X, Y, Z) whose point ``[i, j, k]`` lies
+    at ``lo + (i, j, k) * spacing`` (world units): a Mesh (float32 verts, faces counter-clockwise
+    seen from the side of values above ``level``, i.e. outward for an SDF).
+
+    ``mask`` (X - 1, Y - 1, Z - 1) bool, one per cube (its lowest corner's index): only the cubes
+    flagged True are meshed (e.g. where all eight corners hold a measurement), so the surface may
+    end inside the grid.
+    Raises :class:`UserError` when no value lies on each side of ``level`` (``what`` says where).
+    """
+    volume = values.detach().cpu().double().numpy()
+    m = None
+    seen = volume
+    if mask is not None:            # skimage flags a cube by its HIGHEST corner: shift by one
+        m = np.zeros(volume.shape, dtype=bool)
+        m[1:, 1:, 1:] = mask.detach().cpu().numpy().astype(bool)
+        corners = np.zeros(volume.shape, dtype=bool)
+        for di in (0, 1):
+            for dj in (0, 1):
+                for dk in (0, 1):
+                    corners[di:volume.shape[0] - 1 + di, dj:volume.shape[1] - 1 + dj,
+                            dk:volume.shape[2] - 1 + dk] |= m[1:, 1:, 1:]
+        seen = volume[corners]
+    vmin, vmax = (float(seen.min()), float(seen.max())) if seen.size else (0.0, 0.0)
+    if not (vmin < level < vmax):
+        raise UserError(f"the level set sdf = {level} is empty {what} "
+                        f"(values on the grid lie in [{vmin:.4g}, {vmax:.4g}])")
+    from skimage.measure import marching_cubes
+
+    # The volume is indexed [i, j, k] = (x, y, z), so vertex columns are x, y, z.
+    # Winding: with skimage's default gradient_direction='descent' the right-hand (cross
+    # product) normal of each face points toward INcreasing values -- outward for an SDF that
+    # is negative inside; 'ascent' would turn every face inward. (Checked in
+    # tests/test_marching_cubes.py by the signed volume, which must be positive.)
+    verts, faces, _, _ = marching_cubes(volume, level=level, spacing=tuple(float(x) for x in spacing),
+                                        gradient_direction="descent", mask=m)
+    verts = torch.from_numpy(np.ascontiguousarray(verts)).to(torch.float32) + \
+        torch.tensor([float(x) for x in lo], dtype=torch.float32)
+    faces = torch.from_numpy(np.ascontiguousarray(faces)).to(torch.int64)
+    if faces.numel() == 0:
+        raise UserError(f"the level set sdf = {level} is empty {what} (no cube crosses it)")
+    return Mesh(verts=verts.to(device), faces=faces.to(device))

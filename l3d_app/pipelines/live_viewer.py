@@ -70,9 +70,10 @@ def finish_viewer(live: Optional[LiveViewer], ctx, step: int) -> None:
           file=sys.stderr, flush=True)
 
 
-def gaussian_view(model, background: torch.Tensor, degree: Callable[[int], int], tile_size: int
-                  ) -> Tuple[Snapshot, Render]:
-    """(snapshot, render) of a :class:`~l3d_app.models.gaussians.GaussianModel` with a background RGB (3,)."""
+def gaussian_view(model, background: torch.Tensor, degree: Callable[[int], int], tile_size: int,
+                  rasterize: Callable = rasterize_gaussians) -> Tuple[Snapshot, Render]:
+    """(snapshot, render) of a :class:`~l3d_app.models.gaussians.GaussianModel` with a background RGB (3,),
+    drawn by ``rasterize`` (3D Gaussians; :func:`~l3d_app.render.gaussians.surfels.rasterize_surfels` for surfels)."""
     def snapshot(step: int) -> Dict[str, Any]:
         with torch.no_grad():
             return {"means": model.means.detach().clone(), "log_scales": model.log_scales3.detach().clone(),
@@ -81,8 +82,8 @@ def gaussian_view(model, background: torch.Tensor, degree: Callable[[int], int],
                     "background": background.detach().clamp(0, 1).clone()}
 
     def render(s: Dict[str, Any], camera: Cameras) -> torch.Tensor:
-        return rasterize_gaussians(s["means"], s["log_scales"], s["quats"], s["opacity"], s["sh"], s["degree"],
-                                   camera.to(device=s["means"].device), s["background"], tile_size=int(tile_size))["color"][0]
+        return rasterize(s["means"], s["log_scales"], s["quats"], s["opacity"], s["sh"], s["degree"],
+                         camera.to(device=s["means"].device), s["background"], tile_size=int(tile_size))["color"][0]
 
     return snapshot, render
 

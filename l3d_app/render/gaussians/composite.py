@@ -26,7 +26,7 @@ The fast path of :func:`l3d_app.render.gaussians.rasterize.rasterize_gaussians`:
 from __future__ import annotations
 
 import math
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 
@@ -95,12 +95,18 @@ def pixel_centres(width: int, height: int, dtype, device) -> torch.Tensor:
 @torch.no_grad()
 def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: torch.Tensor,
                       mean2d: torch.Tensor, conic: torch.Tensor, opacity: torch.Tensor,
-                      width: int, height: int, tile: int, max_elements: int = 1 << 22
+                      width: int, height: int, tile: int, max_elements: int = 1 << 22,
+                      rays: Optional[torch.Tensor] = None, floor: Optional[torch.Tensor] = None
                       ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Flat (pixel, splat) pairs with ``alpha >= 1/255``; each pixel's pairs are one run, by depth.
 
     Args: the output of :func:`bin_tiles`; mean2d (M, 2), conic (M, 3) ``(A, B, C)`` of
         the inverse 2D covariance, opacity (M,); image and tile size (px).
+        rays: surfels only (:mod:`l3d_app.render.gaussians.surfels`): (M, 9) the row-major
+            3x3 matrix ``A`` taking a pixel ``(x, y, 1)`` to ``c`` with the ray-splat
+            intersection ``(u, v) = (c0, c1) / c2`` (in front of the camera where ``c2 > 0``);
+            the quadratic form is then ``min(d^T conic d + floor, u^2 + v^2)`` (``conic`` is the
+            low-pass floor, ``floor`` (M,) its offset, default 0).
     Returns: pix (K,) pixel index ``row * width + col``, spl (K,) splat index.
     """
     dev, dt = mean2d.device, mean2d.dtype
@@ -111,6 +117,9 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
     # so the arithmetic below runs on contiguous (G, L) arrays; gathers by index_select, on CPU
     # several times faster than advanced indexing
     cols = [torch.cat([x.contiguous(), x.new_zeros(1)]) for x in (*mean2d.unbind(1), *conic.unbind(1), opacity)]
+    ray_cols = [] if rays is None else [torch.cat([x.contiguous(), x.new_zeros(1)]) for x in rays.unbind(1)]
+    if floor is not None:
+        cols.append(torch.cat([floor.contiguous(), floor.new_zeros(1)]))
     sidp = torch.cat([sid, sid.new_full((1,), M)])
     ly, lx = torch.meshgrid(torch.arange(tile, device=dev), torch.arange(tile, device=dev), indexing="ij")
     ly, lx = ly.reshape(-1), lx.reshape(-1)
@@ -132,16 +141,20 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
                 t = tl[g0:g0 + per]
                 idx = torch.where(slot < cnt[g0:g0 + per, None], st[g0:g0 + per, None] + slot, sid.numel())
                 s = sidp.index_select(0, idx.reshape(-1))                               # (G*L,)
-                u, v, A, B, C, o = (c.index_select(0, s).reshape(-1, L) for c in cols)  # each (G, L)
+                u, v, A, B, C, o, *off = (c.index_select(0, s).reshape(-1, L) for c in cols)  # each (G, L)
                 x0, y0 = (t % ntx) * tile, torch.div(t, ntx, rounding_mode="floor") * tile
                 ox = u - (x0.to(dt) + 0.5)[:, None]                                    # splat centre, tile-local
                 oy = v - (y0.to(dt) + 0.5)[:, None]
-                coef = torch.stack([A * ox * ox + 2 * B * ox * oy + C * oy * oy, -2 * (A * ox + B * oy),
+                const = A * ox * ox + 2 * B * ox * oy + C * oy * oy
+                coef = torch.stack([const + off[0] if off else const, -2 * (A * ox + B * oy),
                                     -2 * (B * ox + C * oy), A, 2 * B, C], 1)            # (G, 6, L)
-                q = torch.matmul(mono, coef)                                           # (G, P, L)
                 # alpha = o exp(-q/2) >= 1/255  <=>  q <= 2 ln(255 o)   (padding: o = 0, never)
                 thr = 2.0 * torch.log(o * 255.0)
-                f = torch.nonzero((q <= thr[:, None, :]).reshape(-1)).reshape(-1)
+                if ray_cols:
+                    hit = _ray_splat_hits(mono, coef, ray_cols, s, L, x0, y0, thr, dt)
+                else:
+                    hit = torch.matmul(mono, coef) <= thr[:, None, :]                 # (G, P, L)
+                f = torch.nonzero(hit.reshape(-1)).reshape(-1)
                 gp = torch.div(f, L, rounding_mode="floor")                            # (tile, pixel)
                 col, row = x0[:, None] + lx, y0[:, None] + ly                          # (G, P)
                 pix = torch.where((col < width) & (row < height), row * width + col, -1).reshape(-1).index_select(0, gp)
@@ -152,6 +165,24 @@ def splat_pixel_pairs(sid: torch.Tensor, tile_start: torch.Tensor, tile_count: t
                 spl_out.append(sp)
                 pix_out.append(pix)
     return torch.cat(pix_out), torch.cat(spl_out)
+
+
+def _ray_splat_hits(mono, coef, ray_cols, s, L, x0, y0, thr, dt) -> torch.Tensor:
+    """(G, P, L) bool: the low-pass form (``mono @ coef``) or the ray-splat form ``u^2 + v^2`` is
+    within ``thr`` (G, L), for the pixels of G tiles (origins ``x0``, ``y0`` (G,); ``mono`` (P, 6)
+    their local monomials ``(1, lx, ly, ...)``) and the splats ``s`` (G*L,) whose rows of ``A`` are
+    ``ray_cols`` (9 padded columns). ``c = A (x, y, 1)`` is linear in the local offsets, so its three
+    components come from the same matmul as the low-pass form; ``u^2 + v^2 <= thr`` is tested as
+    ``c0^2 + c1^2 <= thr c2^2`` with ``c2 > 0`` (the intersection in front of the camera): no division."""
+    a = [c.index_select(0, s).reshape(-1, L) for c in ray_cols]                     # each (G, L)
+    px0, py0 = (x0.to(dt) + 0.5)[:, None], (y0.to(dt) + 0.5)[:, None]
+    zero = torch.zeros_like(a[0])
+    comps = [torch.stack([a[3 * k] * px0 + a[3 * k + 1] * py0 + a[3 * k + 2], a[3 * k], a[3 * k + 1],
+                          zero, zero, zero], 1) for k in range(3)]                     # each (G, 6, L)
+    full = torch.matmul(mono, torch.cat([coef, *comps], 2))                            # (G, P, 4L)
+    q, c0, c1, c2 = full.split(L, 2)
+    t = thr[:, None, :]
+    return (q <= t) | ((c2 > 0) & (c0 * c0 + c1 * c1 <= t * c2 * c2))
 
 
 def _segments(pix: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
