@@ -113,3 +113,31 @@ def test_cover_views_covers_a_wall_the_points_leave_bare():
         out = rasterize_gaussians(m.means, m.log_scales3, m.quats, torch.full((m.num,), 4.6), m.sh, 0, cam)
         return float((out["alpha"] > 0.5).float().mean())
     assert covered(model) < 0.6 and covered(grown) > 0.95
+
+
+@pytest.mark.parametrize("known, surfels", [(False, False), (True, False), (False, True)])
+def test_initial_splats_start_a_photo_capture_by_covering_its_views(known, surfels):
+    """``initial_splats`` (gs_train, surfels): points and an unknown background (a photo capture) give
+    gs_train's 3D splats the covering start (more splats than points, the points' small splats kept);
+    a known background, or surfels, keep the common shrink (one splat per point, all scaled alike)."""
+    from l3d_app.data.nerf_views import MultiViewData
+    from l3d_app.pipelines.splats import initial_splats
+
+    cam = _camera()
+    x, y = torch.meshgrid(torch.linspace(-2.0, -0.2, 30), torch.linspace(-1.5, 1.5, 25), indexing="ij")
+    points = torch.stack([x.reshape(-1), y.reshape(-1), torch.zeros(x.numel())], 1)
+    far = torch.tensor([[0.5, 0.0, -3.0]])                         # an isolated point 1 unit before the camera
+    data = MultiViewData(torch.full((1, H, W, 3), 0.3), cam, torch.tensor([0]), torch.tensor([], dtype=torch.long),
+                         torch.tensor([], dtype=torch.long), torch.full((3,), 0.3),
+                         torch.tensor([[-3.0, -3.0, -1.0], [3.0, 3.0, 1.0]]), points=torch.cat([points, far]),
+                         background_known=known)
+    model = initial_splats(data, data, None, 10, "grey", 0.1, max_coverage=16.0, surfels=surfels)
+    plain = init_from_points(data.points, None, opacity=0.1)
+    if known or surfels:
+        assert model.num == len(data.points)
+        step = (model.log_scales[:, 0] - plain.log_scales[:, 0]).detach()
+        assert float(step.max() - step.min()) < 1e-5 and float(step.max()) < -1.0      # one common factor
+    else:
+        assert model.num > len(data.points)
+        kept = (model.log_scales[: len(points)] == plain.log_scales[: len(points)]).all(1).float().mean()
+        assert kept > 0.9                                           # the isolated splat is capped, not the rest
