@@ -77,13 +77,14 @@ def initial_splats(raw, data, generator: Optional[torch.Generator], n_init: int,
         q = randn((model.num, 4), generator, points.device)
         model.quats.data = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         model.log_scales.data[:, 2] = model.log_scales.data[:, 0] + math.log(SURFEL_THICKNESS)
-    views = data.train[torch.linspace(0, len(data.train) - 1, min(16, len(data.train))).long()]
-    if not surfels and getattr(raw, "points", None) is not None and not data.background_known:   # a photo capture
-        model = cover_views(model, data.images[views], data.cameras[views], float(max_coverage))
-    elif float(max_coverage) > 0:          # bounded start-up cost
-        model.log_scales.data = shrink_to_coverage(model.means, model.log_scales, model.quats,
-                                                   torch.sigmoid(model.opacity_logits), data.cameras[views],
-                                                   float(max_coverage))
+    if float(max_coverage) > 0:            # bounded start-up cost (0: the scales as initialised)
+        views = data.train[torch.linspace(0, len(data.train) - 1, min(16, len(data.train))).long()]
+        if not surfels and getattr(raw, "points", None) is not None and not data.background_known:  # a photo capture
+            model = cover_views(model, data.images[views], data.cameras[views], float(max_coverage))
+        else:
+            model.log_scales.data = shrink_to_coverage(model.means, model.log_scales, model.quats,
+                                                       torch.sigmoid(model.opacity_logits), data.cameras[views],
+                                                       float(max_coverage))
     return model
 
 
