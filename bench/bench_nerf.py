@@ -1,7 +1,13 @@
-"""Benchmark: the fast train_nerf configuration against the course baseline (nerf_baseline)
-on the built-in 64x64 scene, speed against error. Run by hand, never in tests:
+"""Benchmark: radiance-field configurations on the built-in 64x64 scene, speed against error, at equal
+wall time. Run by hand, never in tests:
 
     python bench/bench_nerf.py [--budget 300] [--target 0] [--threads 1] [--configs train_nerf nerf_baseline]
+    python bench/bench_nerf.py --configs nerf_baseline nerf_importance --threads 2     # coarse + fine vs one network
+
+Configurations (``CONFIGS``): ``train_nerf`` (the fast field), ``nerf_baseline`` (the course's NeRF:
+``experiment=nerf_baseline``, coarse + fine networks, 64 + 128 samples), ``nerf_importance`` (the same MLP
+and sample counts with ONE network as its own no-grad proposal, ``sampler=importance``) and
+``nerf_stratified`` (one network, 128 stratified samples).
 
 Each configuration runs through ``main.py`` with ``time_budget = 2 * budget + 60`` WALL seconds
 for the whole task (``time_budget`` counts start-up, the frequent validations, the final test
@@ -23,8 +29,12 @@ import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-BUDGETS = (30, 120, 300)
-EVAL_EVERY = {"train_nerf": 10, "nerf_baseline": 10}
+BUDGETS = (30, 60, 120, 300)
+CONFIGS = {"train_nerf": ["task=train_nerf"],
+           "nerf_baseline": ["experiment=nerf_baseline"],
+           "nerf_importance": ["experiment=nerf_baseline", "sampler=importance", "sampler.n_fine=128"],
+           "nerf_stratified": ["experiment=nerf_baseline", "sampler=stratified", "sampler.n_samples=128"]}
+EVAL_EVERY = {"train_nerf": 10, "nerf_baseline": 25, "nerf_importance": 25, "nerf_stratified": 25}   # steps between val readings
 
 
 def run_config(task: str, budget: float, threads: int, out: Path, reuse: bool = False) -> list:
@@ -34,7 +44,7 @@ def run_config(task: str, budget: float, threads: int, out: Path, reuse: bool = 
     if reuse and (run_dir / "metrics.json").exists():
         metrics = json.loads((run_dir / "metrics.json").read_text())
         return [(h["train_seconds"], h["psnr"], h["ssim"], h["step"]) for h in metrics["history"]], metrics
-    cmd = [sys.executable, str(REPO / "main.py"), f"task={task}", "iters=1000000", f"time_budget={2 * budget + 60}",
+    cmd = [sys.executable, str(REPO / "main.py"), *CONFIGS[task], "iters=1000000", f"time_budget={2 * budget + 60}",
            f"eval_every={EVAL_EVERY.get(task, 50)}", "eval_views=4", "gif_frames=0", f"threads={threads}",
            "tensorboard=false", f"hydra.run.dir={run_dir}"]
     print(" ".join(cmd), flush=True)
@@ -64,7 +74,7 @@ def main() -> None:
     ap.add_argument("--target", type=float, default=0.0, help="PSNR target (0: the baseline's PSNR at the budget)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--reuse", action="store_true", help="re-read finished runs instead of training again")
-    ap.add_argument("--configs", nargs="+", default=["train_nerf", "nerf_baseline"])
+    ap.add_argument("--configs", nargs="+", default=["train_nerf", "nerf_baseline"], choices=sorted(CONFIGS))
     args = ap.parse_args()
     out = REPO / "outputs" / "bench_nerf"
     results = {}
@@ -81,7 +91,8 @@ def main() -> None:
     for task, r in results.items():
         h, f = r["history"], r["final"]
         lines.append(f"| {task} | " + " | ".join(f"{psnr_at(h, b):.2f}" for b in budgets)
-                     + f" | {time_to(h, target):.1f} s | {f['iters']} | {f['samples_per_ray']} "
+                     + f" | {time_to(h, target):.1f} s | {f['iters']} | "
+                     + f"{f['samples_per_ray'] + f.get('coarse_samples_per_ray', 0.0):g} "
                      + f"| {f.get('occupied_fraction', 1.0)} | {f['psnr']:.2f} |")
         r["time_to_target"] = time_to(h, target)
     if {"train_nerf", "nerf_baseline"} <= set(results):

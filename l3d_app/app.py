@@ -269,3 +269,31 @@ def _parse_scalar(text: str) -> Any:
         except ValueError:
             pass
     return text
+
+
+def _hydra_callback_base():
+    """Hydra's ``Callback`` base class (an ``object`` stand-in when Hydra is absent)."""
+    try:
+        from hydra.experimental.callback import Callback
+    except ImportError:      # pragma: no cover - hydra is a dependency
+        return object
+    return Callback
+
+
+class SweepReport(_hydra_callback_base()):
+    """Hydra callback (``conf/config.yaml``: ``hydra.callbacks``): when a sweep ends, its report
+    (:func:`l3d_app.report.make_report`: the speed-vs-error table, loss curves and each job's picture) is
+    written into the sweep directory; a sweep whose jobs share no error figure gets one note line instead."""
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        from l3d_app.report import make_report
+
+        root = Path(str(config.hydra.sweep.dir))
+        if not root.is_dir() or not any(root.rglob("metrics.json")):
+            return
+        try:
+            paths = make_report(root)
+        except (UserError, OSError) as err:
+            print(f"l3d_app: note: no sweep report: {one_line(err)}", file=sys.stderr)
+            return
+        print(f"l3d_app: sweep report: {paths['md']}", file=sys.stderr)

@@ -5,7 +5,9 @@
 Reads every ``metrics.json`` below the folder (and each job's ``.hydra/overrides.yaml``
 when present), so it works for every task. Writes ``report.md``, ``report.csv`` and
 ``report.png`` (error against seconds, Pareto front marked) into ``--out`` (default: the
-folder itself). By default the front is drawn on a validation figure (``val_psnr`` ...) where
+folder itself), and where the jobs have them ``report_loss.png`` (each job's training loss
+against step; ``train_loss_end`` in the table) and ``report_views.png`` (each job's picture):
+:mod:`l3d_app.runtime.sweep_pictures`. A sweep (``python main.py -m ...``) writes its report when it ends. By default the front is drawn on a validation figure (``val_psnr`` ...) where
 every job reports one: a front chooses settings, and the test split only reports. A job is on the Pareto front when no other job is at least as fast AND at
 least as accurate, and strictly better in one of the two.
 """
@@ -172,16 +174,23 @@ def plot(rows: Sequence[Dict[str, object]], error_key: str, path: Path) -> None:
 
 def make_report(root: Path, error: Optional[str] = None, out: Optional[Path] = None) -> Dict[str, Path]:
     """Write report.md / report.csv / report.png for the runs below ``root``; return their paths."""
+    from l3d_app.runtime.sweep_pictures import sweep_pictures
+
     jobs = find_jobs(Path(root))
     key = choose_error_key(jobs, error)
     rows = build_table(jobs, key)
     out = Path(out or root)
+    extra = sweep_pictures(Path(root), jobs, out)
+    if extra["loss_end"]:
+        for row in rows:
+            row["train_loss_end"] = extra["loss_end"].get(row["job"], "")
     paths = {"md": out / "report.md", "csv": out / "report.csv", "png": out / "report.png"}
-    for kind, text in (("md", to_markdown(rows)), ("csv", to_csv(rows))):
+    text = to_markdown(rows) + "".join(f"\n![{kind}]({p.name})\n" for kind, p in extra["files"].items())
+    for kind, text in (("md", text), ("csv", to_csv(rows))):
         with atomic_path(paths[kind]) as tmp:
             tmp.write_text(text)
     plot(rows, key, paths["png"])
-    return paths
+    return {**paths, **extra["files"]}
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

@@ -48,7 +48,7 @@ ALLOWED = {  # layer -> layers its modules may import (besides their own layer)
     "pipelines": MIDDLE | {"geometry", "runtime", "base"},  # composes the middle layer for several tasks (plain arguments)
     "tasks": MIDDLE | {"pipelines", "geometry", "runtime", "base"},
     "report": {"runtime", "base"},
-    "app": MIDDLE | {"tasks", "command_line", "sweep_jobs", "geometry", "runtime", "base"},
+    "app": MIDDLE | {"tasks", "command_line", "sweep_jobs", "report", "geometry", "runtime", "base"},   # report: the sweep callback
     "command_line": {"runtime", "base"},   # the app's checks of command-line values (reads Hydra's overrides)
     "sweep_jobs": {"base"},      # the app's sweep bookkeeping (reads Hydra's job config)
 }

@@ -72,6 +72,10 @@ def test_gs_train_tiny_run_reaches_a_quality_floor_val_during_test_once(compose,
     assert len(ev.Images("val/pred_truth_error_depth")) == 4 and len(ev.Images("test/pred_truth_error_depth")) == 1
     for f in ("test_views.gif", "progress.gif", "point_cloud.ply"):
         assert (tmp_path / "run" / f).is_file()
+    import imageio.v2 as imageio
+
+    progress = imageio.mimread(tmp_path / "run" / "progress.gif")     # the 2 val views over their ground truth
+    assert len(progress) == 4 and progress[0].shape[:2] == (64, 64)
 
 
 def test_gs_train_needs_validation_views(compose, tmp_path, data_cache):

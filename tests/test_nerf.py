@@ -298,8 +298,9 @@ def test_nerf_baseline_config_is_the_course_setting(compose, tmp_path, data_cach
     cfg = compose("task=nerf_baseline")
     assert cfg.task_name == "train_nerf" and cfg.model.name == "nerf_mlp"
     assert (cfg.model.n_layers, cfg.model.hidden, list(cfg.model.skips)) == (6, 128, [3])
-    assert (cfg.model.n_freq_xyz, cfg.model.n_freq_dir, cfg.sampler.n_samples, cfg.batch_rays) == (6, 2, 128, 1024)
-    assert (cfg.optim.lr, cfg.optim.decay, cfg.optim.decay_every, cfg.sampler.name) == (5e-4, 0.8, 20000, "stratified")
+    assert (cfg.model.n_freq_xyz, cfg.model.n_freq_dir, cfg.sampler.n_samples, cfg.batch_rays) == (6, 2, 64, 1024)
+    assert (cfg.optim.lr, cfg.optim.decay, cfg.optim.decay_every, cfg.sampler.name) == (5e-4, 0.8, 20000, "hierarchical")
+    assert cfg.sampler.n_fine == 128
     assert (cfg.optim.name, cfg.optim.eps, cfg.optim.decay_every) == ("adam_step", 1e-8, 20000)
     cfg = compose("task=nerf_baseline", *TINY, f"data.cache_dir={data_cache}", "iters=3", "eval_every=3",
                   "batch_rays=64", "sampler.n_samples=16", "sampler=importance", "sampler.n_fine=8", "gif_frames=0")

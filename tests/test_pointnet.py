@@ -35,8 +35,9 @@ def cache_dir(tmp_path_factory):
 
 
 def tiny(cache_dir, *extra):
-    """Overrides for a seconds-long run on a tiny built-in dataset and a small PointNet."""
-    return ["data.train_per_class=10", "data.test_per_class=6", "data.num_points=400",
+    """Overrides for a seconds-long run on a tiny built-in dataset (the complete three-class shapes) and a
+    small PointNet."""
+    return ["data=shape_parts", "data.train_per_class=10", "data.test_per_class=6", "data.num_points=400",
             f"data.cache_dir={cache_dir}", "model.widths=[32,64,128]", "model.cls_head=[64]",
             "model.seg_head=[64]", "train_points=128", "eval_points=128", "batch_size=10",
             "lr=0.005", "num_vis=1", "num_frames=2", "image_size=32", "vis_points=100",
@@ -272,6 +273,11 @@ def test_robustness_command(compose, cache_dir, tmp_path, capsys):
         assert set(m["tables"][kind]) == {"rotation", "num_points"}
     assert m["cls_rot0"] == pytest.approx(m["cls_pts400"])  # both: every point, unrotated
     assert "| 90 |" in (tmp_path / "a" / "robustness.md").read_text()
+    import imageio.v2 as imageio
+    for kind in ("cls", "seg"):            # a row per angle, the first test cloud of each of the 3 classes
+        assert imageio.imread(tmp_path / "a" / f"rotation_{kind}.png").shape[:2] == (2 * 32, 3 * 32)
+    for name in ("robustness_rotation.png", "robustness_points.png"):
+        assert (tmp_path / "a" / name).stat().st_size > 0
     # from a saved checkpoint: same figures without training
     run_task(compose("task=pointnet_robustness", *overrides, "robust_kinds=[cls]",
                      f"cls_checkpoint={tmp_path / 'a' / 'cls' / 'best.pt'}"), out_dir=tmp_path / "b")

@@ -46,6 +46,6 @@ def test_experiment_nerf_baseline_is_the_task_alias(compose):
     as_task = OmegaConf.to_container(compose("task=nerf_baseline"), resolve=False)
     as_experiment = OmegaConf.to_container(compose("experiment=nerf_baseline"), resolve=False)
     assert as_experiment == as_task
-    assert as_experiment["task_name"] == "train_nerf" and as_experiment["sampler"]["n_samples"] == 128
+    assert as_experiment["task_name"] == "train_nerf" and as_experiment["sampler"]["name"] == "hierarchical"
     assert compose("experiment=nerf_baseline", "iters=5").iters == 5
     assert compose().task_name == "render360"          # no experiment by default

@@ -39,6 +39,21 @@ def classify_orientation(normals: torch.Tensor, up: Sequence[float] = (0.0, 1.0,
     return out
 
 
+def classify_by_cosine(normals: torch.Tensor, up: Sequence[float] = (0.0, 1.0, 0.0), horizontal_above: float = 0.8,
+                       vertical_below: float = 0.3) -> torch.Tensor:
+    """(N,) long class of each normal (N, 3) by ``c = |n . up|`` of the unit normal (the worked exercise's
+    rule, ``|n_y|`` for ``up = y``): ``HORIZONTAL`` where ``c > horizontal_above``, ``VERTICAL`` where
+    ``c < vertical_below``, ``OTHER`` otherwise (needs ``0 <= vertical_below <= horizontal_above <= 1``)."""
+    if not 0.0 <= float(vertical_below) <= float(horizontal_above) <= 1.0:
+        raise UserError(f"need 0 <= vertical_below <= horizontal_above <= 1, got {vertical_below}, {horizontal_above}")
+    u = torch.as_tensor(up, dtype=normals.dtype, device=normals.device)
+    c = (torch.nn.functional.normalize(normals, dim=-1) @ (u / u.norm())).abs()
+    out = torch.full(c.shape, OTHER, dtype=torch.long, device=normals.device)
+    out[c > float(horizontal_above)] = HORIZONTAL
+    out[c < float(vertical_below)] = VERTICAL
+    return out
+
+
 def unsigned_angle_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """(N,) angle in degrees, in [0, 90], between the LINES of normals a and b (N, 3)."""
     cos = (torch.nn.functional.normalize(a, dim=-1) * torch.nn.functional.normalize(b, dim=-1)).sum(-1).abs()

@@ -15,7 +15,7 @@ from torch import nn
 
 from l3d_app.errors import UserError
 from l3d_app.models import svr_decoders, svr_pseudo  # noqa: F401  (register the decoders)
-from l3d_app.models.svr_encoder import ImageEncoder
+from l3d_app.models.image_encoders import build_image_encoder
 from l3d_app.registry import MODELS
 from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.torch_files import read_torch_file
@@ -27,7 +27,7 @@ class SVRModel(nn.Module):
     """Image encoder + decoder: ``model(images)`` is the (B, latent_dim) feature the decoder
     reads (``model.decoder.points(feature, ...)``, ``model.decoder.shapes(feature)``)."""
 
-    def __init__(self, encoder: ImageEncoder, decoder: nn.Module):
+    def __init__(self, encoder: nn.Module, decoder: nn.Module):
         super().__init__()
         self.encoder, self.decoder = encoder, decoder
 
@@ -37,9 +37,10 @@ class SVRModel(nn.Module):
 
 
 def build_svr_model(encoder_cfg: Dict, decoder_cfg: Dict, geometry: Dict) -> SVRModel:
-    """Encoder at ``geometry["image_size"]`` with ``encoder_cfg``; the decoder registered as
+    """Encoder at ``geometry["image_size"]`` with ``encoder_cfg`` (its ``name``: cnn or resnet18; without one
+    the CNN); the decoder registered as
     ``decoder_cfg["name"]`` with the rest of ``decoder_cfg`` and the data ``geometry``."""
-    encoder = ImageEncoder(image_size=int(geometry["image_size"]), **encoder_cfg)
+    encoder = build_image_encoder(int(geometry["image_size"]), **encoder_cfg)
     decoder = MODELS.build(decoder_cfg, latent_dim=encoder.latent_dim, geometry=geometry)
     return SVRModel(encoder, decoder)
 

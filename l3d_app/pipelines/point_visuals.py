@@ -1,4 +1,4 @@
-"""Pictures of a point network's test predictions: a confusion matrix and turntable gifs of clouds."""
+"""Pictures of a point network's test predictions: a confusion matrix, turntable gifs of clouds, rotated rows."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from l3d_app.metrics.accuracy import confusion_matrix
 from l3d_app.pipelines.point_nets import Evaluation
 from l3d_app.render.charts import confusion_image
 from l3d_app.render.palette import palette
+from l3d_app.render.points.cloud_row import cloud_row, correctness_colors
 from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.media import save_gif, save_png
 
@@ -33,6 +34,21 @@ class Turntable:
         keep = torch.randperm(points.shape[0], generator=torch.Generator().manual_seed(0))[:self.max_points]
         cloud = PointCloud(points[keep].float(), colors=colors[keep].float()).normalized().to(self.device)
         return self.renderer(cloud, self.cams)["image"].cpu()
+
+
+def rotation_row(renderer, camera: Cameras, ev: Evaluation, kind: str, labels: Optional[torch.Tensor],
+                 n: int, n_parts: int) -> torch.Tensor:
+    """(H, k W, 3) picture: the first test cloud of each class (``labels`` (N,); the first clouds when None), at
+    most ``n``, as ``ev`` saw them (rotated), seen by ``camera``; cls: green where the class was right, red where
+    wrong; seg: the predicted parts' colours (``n_parts`` of them)."""
+    firsts = (list(range(min(n, ev.pred.shape[0]))) if labels is None else
+              [int((labels == c).nonzero()[0]) for c in torch.unique(labels).tolist()][:n])
+    index = torch.tensor(firsts)
+    if kind == "cls":
+        colors = correctness_colors(ev.pred[index] == ev.target[index], ev.points.shape[1])
+    else:
+        colors = palette(n_parts)[ev.pred[index]]
+    return cloud_row(renderer, camera, list(ev.points[index]), list(colors))
 
 
 def write_visuals(ctx, ev: Evaluation, kind: str, names: List[str], class_of: Optional[torch.Tensor],

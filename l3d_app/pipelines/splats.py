@@ -1,8 +1,8 @@
 """Training splats from posed images: the parts that ``gs_train`` (3D Gaussians) and ``surfels``
 (2D Gaussian surfels) share, with plain arguments.
 
-* :func:`initial_splats`: the data's own points (``data.points``) or ``n_init`` points drawn in its
-  scene box, coloured by the training views (median of the pixels each projects to), the data's
+* :func:`initial_splats`: the data's own points (``data.points``; ``init_points`` > 0 keeps a seeded random
+  subset of that many, as the course subsamples its cloud) or ``n_init`` points drawn in its scene box, coloured by the training views (median of the pixels each projects to), the data's
   point colours or grey; scales from the 3 nearest neighbours, shrunk until the splats cover a
   pixel at most ``max_coverage`` deep (:mod:`~l3d_app.render.gaussians.coverage`); for 3D splats of
   a photo capture (the data's points, its background unknown: walls and floor are scene) capped per
@@ -36,7 +36,7 @@ from l3d_app.render.gaussians.coverage import shrink_to_coverage
 from l3d_app.render.gaussians.panels import colorize_depth, error_map, side_by_side
 from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.lr_schedules import exponential
-from l3d_app.runtime.random import rand, randint, randn
+from l3d_app.runtime.random import rand, randint, randn, randperm
 
 SURFEL_THICKNESS = 1e-3     # a surfel's third scale over its first (the disk's thickness for the strategies)
 INIT_COLORS = ("views", "points", "grey")
@@ -44,11 +44,20 @@ INIT_COLORS = ("views", "points", "grey")
 
 def initial_splats(raw, data, generator: Optional[torch.Generator], n_init: int, init_colors: str = "views",
                    opacity: float = 0.1, isotropic: bool = False, scale_factor: float = 1.0,
-                   max_coverage: float = 0.0, surfels: bool = False, data_name: str = "") -> GaussianModel:
+                   max_coverage: float = 0.0, surfels: bool = False, data_name: str = "",
+                   init_points: int = 0) -> GaussianModel:
     """The starting splats of a multi-view dataset (``raw``: as loaded, ``data``: on the run's
     device); see the module docstring. ``init_colors``: views | points | grey (``data_name`` for
-    the message when the data has no point colours)."""
-    points, colors = getattr(raw, "points", None), None
+    the message when the data has no point colours); ``init_points`` > 0: that many of the data's points,
+    a random subset drawn with ``generator`` (0: all)."""
+    points, colors, point_colors = getattr(raw, "points", None), None, getattr(raw, "point_colors", None)
+    keep = int(init_points)
+    if keep < 0:
+        raise UserError(f"init_points must be >= 0 (0: all of the data's points), got {keep}")
+    if points is not None and 0 < keep < len(points):
+        subset = randperm(len(points), generator)[:keep]
+        points = points[subset]
+        point_colors = None if point_colors is None else point_colors[subset]
     if points is None:
         lo, hi = data.scene_box[0].cpu(), data.scene_box[1].cpu()
         points = lo + (hi - lo) * rand((int(n_init), 3), generator)
@@ -57,7 +66,7 @@ def initial_splats(raw, data, generator: Optional[torch.Generator], n_init: int,
     if mode == "views":
         colors = colors_from_views(points, data.images[data.train], data.cameras[data.train])
     elif mode == "points":
-        colors = getattr(raw, "point_colors", None)
+        colors = point_colors
         if colors is None:
             raise UserError(f"init_colors=points: data '{data_name}' has no point colours (use views or grey)")
     elif mode != "grey":
@@ -68,13 +77,14 @@ def initial_splats(raw, data, generator: Optional[torch.Generator], n_init: int,
         q = randn((model.num, 4), generator, points.device)
         model.quats.data = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         model.log_scales.data[:, 2] = model.log_scales.data[:, 0] + math.log(SURFEL_THICKNESS)
-    views = data.train[torch.linspace(0, len(data.train) - 1, min(16, len(data.train))).long()]
-    if not surfels and getattr(raw, "points", None) is not None and not data.background_known:   # a photo capture
-        model = cover_views(model, data.images[views], data.cameras[views], float(max_coverage))
-    elif float(max_coverage) > 0:          # bounded start-up cost
-        model.log_scales.data = shrink_to_coverage(model.means, model.log_scales, model.quats,
-                                                   torch.sigmoid(model.opacity_logits), data.cameras[views],
-                                                   float(max_coverage))
+    if float(max_coverage) > 0:            # bounded start-up cost (0: the scales as initialised)
+        views = data.train[torch.linspace(0, len(data.train) - 1, min(16, len(data.train))).long()]
+        if not surfels and getattr(raw, "points", None) is not None and not data.background_known:  # a photo capture
+            model = cover_views(model, data.images[views], data.cameras[views], float(max_coverage))
+        else:
+            model.log_scales.data = shrink_to_coverage(model.means, model.log_scales, model.quats,
+                                                       torch.sigmoid(model.opacity_logits), data.cameras[views],
+                                                       float(max_coverage))
     return model
 
 

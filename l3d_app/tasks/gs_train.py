@@ -20,7 +20,9 @@ The data, initialisation, optimiser and per-step work are shared with ``surfels`
 (:mod:`l3d_app.pipelines.splats`).
 Validation views are evaluated every ``eval_every`` steps (TensorBoard ``val/``, with a
 prediction | truth | error | depth picture); the test views once at the end.
-Outputs: ``test_views.gif``, ``progress.gif`` (a validation view over training),
+``+init_points=N`` (N > 0) keeps that many of the data's initial points (a seeded random subset, as the course
+subsamples its cloud). Outputs: ``test_views.gif``, ``progress.gif`` (the course's grid: the first
+four validation views over training, or ``+progress_views=K`` of them, their ground truth below),
 ``point_cloud.ply`` (3DGS layout), ``metrics.json``.
 """
 
@@ -37,6 +39,7 @@ from l3d_app.pipelines.live_viewer import finish_viewer, gaussian_view, start_vi
 from l3d_app.pipelines.splats import SplatSteps, evaluate_views, initial_splats, scene_extent, splat_optimizer
 from l3d_app.registry import DATASETS, STRATEGIES, TASKS
 from l3d_app.render.gaussians.panels import depth_range
+from l3d_app.render.gaussians.progress_grid import progress_grid
 from l3d_app.render.gaussians.rasterize import rasterize_gaussians
 from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.media import save_gif, to_uint8
@@ -56,7 +59,8 @@ def gs_train(cfg, ctx) -> dict:
     data = raw.to(ctx.device)
     model = initial_splats(raw, data, ctx.generator, int(cfg.n_init), str(cfg.init_colors), float(cfg.init_opacity),
                            bool(cfg.isotropic), float(cfg.init_scale), float(cfg.init_max_coverage),
-                           data_name=str(cfg.data.name)).to(ctx.device)
+                           data_name=str(cfg.data.name),
+                           init_points=int(cfg.init_points) if "init_points" in cfg else 0).to(ctx.device)
     extent = scene_extent(data.cameras[data.train], float(cfg.extent_margin))   # training cameras only (3DGS)
     background = background_parameter(cfg.learn_background, data)  # learnt for real captures
     opt, sched = splat_optimizer(model, background, cfg.lr, extent, float(cfg.adam_eps), int(cfg.lr_decay_steps))
@@ -64,7 +68,7 @@ def gs_train(cfg, ctx) -> dict:
     strategy.initialize(model, opt, extent)
     steps = SplatSteps(model, opt, strategy, data.train, data.images, ctx.generator, float(cfg.ssim_lambda),
                        int(cfg.sh_degree), int(cfg.sh_every))
-    prog_frames: List[torch.Tensor] = []     # uint8 (H, W, 3) validation panels: checkpointed, so a resumed gif is whole
+    prog_frames: List[torch.Tensor] = []     # uint8 (H, W, 3) validation grids: checkpointed, so a resumed gif is whole
     trainable = Trainable({"gaussians": model, "background": background}, opt, schedulers=[sched],
                           extra={"strategy": strategy, "progress_frames": prog_frames,
                                  "step_times": steps.step_times})    # step costs cover the resumed parts of a run
@@ -94,9 +98,11 @@ def gs_train(cfg, ctx) -> dict:
     def evaluate(views, deg):
         return evaluate_views(lambda i: render(i, deg), views, data.images, lo_hi)
 
+    grid_kw = {"views": int(cfg.progress_views)} if "progress_views" in cfg else {}   # +progress_views=K (4)
+
     def eval_fn(step: int):
-        pred, _, panel, m = evaluate(data.val, degree(step))
-        prog_frames.append(torch.from_numpy(to_uint8(panel)))
+        pred, truth, panel, m = evaluate(data.val, degree(step))
+        prog_frames.append(torch.from_numpy(to_uint8(progress_grid(pred, truth, **grid_kw))))
         return {**m, "n_gaussians": model.num, "images": {"pred_truth_error_depth": panel}}
 
     with ctx.stopwatch.stage("train"):

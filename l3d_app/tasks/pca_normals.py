@@ -4,7 +4,9 @@ horizontal / vertical surface classification.
 Normals come from :func:`l3d_app.geometry.normals.estimate_normals` (plane fit to each point's
 ``k`` nearest neighbours); :func:`l3d_app.geometry.surface_orientation.classify_orientation`
 sorts them into horizontal (normal along ``up``), vertical (normal perpendicular to ``up``)
-and other, within ``tolerance_deg``. Clouds that carry true normals (the room does) are
+and other, within ``tolerance_deg``; ``preset=exercise`` uses the worked exercise's rule instead
+(:func:`~l3d_app.geometry.surface_orientation.classify_by_cosine`: horizontal ``|n . up| > 0.8``, vertical
+``< 0.3``, the ``exercise`` block). The class counts are printed on stdout and kept in metrics.json. Clouds that carry true normals (the room does) are
 also scored: the sign-free angle error and the agreement of the classes with those of the
 true normals. Writes ``normals.png`` (estimated ``|n|`` as RGB | classes: horizontal blue,
 vertical orange, other grey | points in their own colours), ``table.md`` and metrics.json
@@ -19,8 +21,8 @@ from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.geometry.normals import estimate_normals
 from l3d_app.geometry.pointcloud import PointCloud
-from l3d_app.geometry.surface_orientation import (CLASS_NAMES, classify_orientation, point_statistics,
-                                                  unsigned_angle_deg)
+from l3d_app.geometry.surface_orientation import (CLASS_NAMES, classify_by_cosine, classify_orientation,
+                                                  point_statistics, unsigned_angle_deg)
 from l3d_app.registry import DATASETS, RENDERERS, TASKS
 from l3d_app.runtime.config_values import config_floats
 from l3d_app.runtime.media import save_png
@@ -38,22 +40,34 @@ def pca_normals(cfg, ctx) -> dict:
         raise UserError(f"need k >= 3 and tolerance_deg < 45, got k={cfg.k}, tolerance_deg={cfg.tolerance_deg}")
     if not (len(cfg.up) == 3 and any(float(v) != 0 for v in cfg.up)):
         raise UserError(f"up must be a non-zero [x, y, z] direction, got {list(cfg.up)}")
+    preset = str(cfg.get("preset", "scene"))
+    if preset not in ("scene", "exercise"):
+        raise UserError(f"preset must be scene or exercise, got {preset!r}")
+    if preset == "exercise":
+        above, below = float(cfg.exercise.horizontal_above), float(cfg.exercise.vertical_below)
+        classify = lambda n: classify_by_cosine(n, list(cfg.up), above, below)     # noqa: E731
+        classify(torch.zeros(0, 3))                                                 # bad thresholds fail here
+        rule = f"|n . up| > {above:g} horizontal, < {below:g} vertical"
+    else:
+        classify = lambda n: classify_orientation(n, list(cfg.up), float(cfg.tolerance_deg))  # noqa: E731
+        rule = f"within {float(cfg.tolerance_deg):g} degrees"
     cloud = DATASETS.build(cfg.data, device=ctx.device)
     if not isinstance(cloud, PointCloud):
         raise UserError("pca_normals needs a point-cloud data source (data=room, data=rgbd, data=*_parametric, ...)")
     points = cloud.points.float()
     with ctx.stopwatch.stage("normals"):
         normals = estimate_normals(points, k=int(cfg.k))
-    classes = classify_orientation(normals, list(cfg.up), float(cfg.tolerance_deg))
+    classes = classify(normals)
     stats = point_statistics(points)
     counts = torch.bincount(classes.cpu(), minlength=3)
     metrics = {**{k: (v if k == "count" else [round(x, 5) for x in v]) for k, v in stats.items()},
                "k": int(cfg.k), "tolerance_deg": float(cfg.tolerance_deg),
                **{f"fraction_{n}": round(float(c) / max(1, stats["count"]), 5) for n, c in zip(CLASS_NAMES, counts)},
+               **{f"count_{n}": int(c) for n, c in zip(CLASS_NAMES, counts)}, "preset": preset,
                "normals_seconds": round(ctx.stopwatch.stages["normals"], 4)}
     if cloud.normals is not None:
         err = unsigned_angle_deg(normals, cloud.normals.float())
-        truth = classify_orientation(cloud.normals.float(), list(cfg.up), float(cfg.tolerance_deg))
+        truth = classify(cloud.normals.float())
         metrics.update(angle_error_median_deg=round(float(err.median()), 4),
                        angle_error_mean_deg=round(float(err.mean()), 4),
                        within_10deg=round(float((err < 10).float().mean()), 5),
@@ -73,4 +87,6 @@ def pca_normals(cfg, ctx) -> dict:
     ctx.logger.image("pca_normals/normals_classes_colours", strip, 0)
     rows = "| statistic | value |\n|---|---|\n" + "".join(f"| {k} | {v} |\n" for k, v in metrics.items())
     ctx.path("table.md").write_text(rows)
+    print(f"pca_normals ({rule}, k={int(cfg.k)}): " + ", ".join(f"{n} {int(c)}" for n, c in zip(CLASS_NAMES, counts))
+          + f" of {stats['count']} points", flush=True)
     return metrics

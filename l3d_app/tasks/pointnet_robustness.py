@@ -14,8 +14,11 @@ split:
 * number of points: accuracy on the first-seed random subsets of ``num_points_list``
   points per cloud (sizes above the clouds' size are reported as NaN).
 
+``rotation_pictures`` > 0: for each angle, that many test clouds (the first of each class) drawn rotated
+as the model saw them, a row per angle in ``rotation_<kind>.png`` (cls: green where the class was right,
+red where wrong; seg: the predicted parts' colours), also per angle in TensorBoard (``rotation/<kind>``).
 Figures go to metrics.json (``cls_rot<deg>``, ``cls_pts<n>``, ``seg_rot<deg>``,
-``seg_pts<n>``, plus ``tables``; ``<kind>_ms_per_cloud``: wall milliseconds per test cloud of
+``seg_pts<n>``, plus ``tables``; the curves in ``robustness_rotation.png`` and ``robustness_points.png``; ``<kind>_ms_per_cloud``: wall milliseconds per test cloud of
 one evaluation pass on all its points, ``<kind>_n_params``), TensorBoard (``robustness/*`` against the degrees or
 point count, and the markdown tables as text) and ``robustness.md``.
 """
@@ -29,11 +32,15 @@ from typing import Any, Dict, List
 import torch
 
 from l3d_app.errors import UserError
+from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.pipelines.point_nets import evaluate, fit, load_model, require_axis, rotations
-from l3d_app.registry import TASKS
+from l3d_app.pipelines.point_visuals import rotation_row
+from l3d_app.registry import RENDERERS, TASKS
 from l3d_app.runtime.config_values import config_floats, config_words
 from l3d_app.runtime.context import RunContext
 from l3d_app.runtime.logger import RunLogger
+from l3d_app.runtime.media import save_png
+from l3d_app.runtime.plots import line_plot
 from l3d_app.runtime.seed import seed_everything
 from l3d_app.tasks.point_common import load_data, training_spec
 
@@ -70,6 +77,16 @@ def _model_for(cfg, ctx, kind: str):
                          "val_accuracy": info["val_accuracy"], "selected_on": info["selected_on"]}
 
 
+def _rotation_row(cfg, ctx, ev, kind: str, data, degrees: float) -> torch.Tensor:
+    """The picture row of one angle (:func:`rotation_row`), logged to TensorBoard at that angle."""
+    camera = look_at_cameras(float(cfg.distance), float(cfg.elevation), 30.0, float(cfg.fov), int(cfg.image_size),
+                             device=ctx.device)
+    row = rotation_row(RENDERERS.build(cfg.point_renderer), camera, ev, kind, data.test.labels,
+                       int(cfg.rotation_pictures), len(data.part_names))
+    ctx.logger.image(f"rotation/{kind}", row, int(round(degrees)))
+    return row
+
+
 @TASKS.register("pointnet_robustness")
 def pointnet_robustness(cfg, ctx) -> dict:
     """Rotation and point-count tables for a classifier and a segmenter (see module doc)."""
@@ -102,9 +119,13 @@ def pointnet_robustness(cfg, ctx) -> dict:
             metrics[f"{kind}_ms_per_cloud"] = round(1000 * (time.perf_counter() - t0) / len(data.test), 3)
         with ctx.stopwatch.stage(f"{kind}_tables"):
             mats = rotations(str(cfg.rotation_axis), degrees)
+            rows = []
             for d, mat in zip(degrees, mats):
-                acc = evaluate(model, data.test, kind, ctx.device, int(cfg.rotation_points), seed,
-                               rotation=mat, batch_points=batch).accuracy
+                ev = evaluate(model, data.test, kind, ctx.device, int(cfg.rotation_points), seed,
+                              rotation=mat, batch_points=batch)
+                acc = ev.accuracy
+                if int(cfg.rotation_pictures) > 0:
+                    rows.append(_rotation_row(cfg, ctx, ev, kind, data, d))
                 rot_rows[f"{d:g}"] = acc
                 metrics[f"{kind}_rot{d:g}"] = acc
                 ctx.logger.scalar(f"robustness/{kind}_accuracy_vs_degrees", acc, int(round(d)))
@@ -115,6 +136,8 @@ def pointnet_robustness(cfg, ctx) -> dict:
                 pts_rows[str(n)] = acc
                 metrics[f"{kind}_pts{n}"] = acc
                 ctx.logger.scalar(f"robustness/{kind}_accuracy_vs_points", acc, n)
+        if rows:
+            save_png(ctx.path(f"rotation_{kind}.png"), torch.cat(rows, dim=0))
         metrics["tables"][kind] = {"rotation": rot_rows, "num_points": pts_rows}
         metrics[f"{kind}_seconds"] = ctx.stopwatch.stages[f"{kind}_tables"] + info.get("train_seconds", 0.0)
         name = "classification" if kind == "cls" else "segmentation (point)"
@@ -123,6 +146,12 @@ def pointnet_robustness(cfg, ctx) -> dict:
                    _table(name, "points", pts_rows)]
     text = "\n".join(report) + "\n"
     ctx.path("robustness.md").write_text(text)
+    for table, xlabel, fname in (("rotation", f"rotation about {cfg.rotation_axis} (degrees)", "robustness_rotation.png"),
+                                 ("num_points", "points per test cloud", "robustness_points.png")):
+        curves = {k: ([float(x) for x in rows], list(rows.values())) for k, t in metrics["tables"].items()
+                  for rows in [{x: v for x, v in t[table].items() if v == v}]}
+        line_plot(ctx.path(fname), curves, xlabel=xlabel, ylabel="test accuracy (seg: per point)",
+                  logx=table == "num_points", title="pointnet_robustness")
     ctx.logger.text("robustness/tables", text)
     if "cls" in kinds:
         metrics["accuracy"] = metrics[f"cls_rot{degrees[0]:g}"] if degrees else float("nan")

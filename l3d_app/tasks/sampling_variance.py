@@ -1,10 +1,14 @@
-"""sampling_variance: uniform vs stratified samples along a ray -- the variance of the estimated optical
-depth against the number of samples per ray, measured over many rays beside the closed forms.
+"""sampling_variance: uniform, evenly spaced and stratified samples along a ray -- the variance of the
+estimated optical depth against the number of samples per ray, measured over many rays beside the closed forms.
 
 Two densities along a unit ray over ``[near, far]``: a slab of constant density (a hard
 surface-like edge; exact variances for both samplers) and a Gaussian bump (smooth; exact
 for uniform sampling, measured for stratified). For each ``n_samples`` in ``samples``,
 ``rays`` independent rays give the estimates (:mod:`l3d_app.render.volume.sampling_variance`).
+Evenly spaced samples (the course's exercise) put the same samples on every ray of the same length: their
+estimate's spread across rays and the spread of their sample positions are exactly 0, and what they get
+wrong is a fixed error (``evenly_error``), where stratified samples have a spread (``stratified_spread``:
+their positions' standard deviation, ``(far - near) / (N sqrt 12)`` on average) and no bias.
 Writes ``variance.png`` (log-log, measured points and exact lines), ``table.md`` and
 metrics.json: one row per (density, N) and the fitted log-log slopes (uniform -1; stratified
 -2 on the slab, -3 on the bump).
@@ -14,8 +18,9 @@ from __future__ import annotations
 
 from l3d_app.errors import UserError
 from l3d_app.registry import TASKS
-from l3d_app.render.volume.sampling_variance import (GaussianBump, Slab, loglog_slope, optical_depth_estimates,
-                                              stratified_variance_slab, uniform_variance)
+from l3d_app.render.volume.sampling_variance import (GaussianBump, Slab, estimates_at, loglog_slope,
+                                                     position_spread, sample_positions, stratified_variance_slab,
+                                                     uniform_variance)
 from l3d_app.runtime.plots import line_plot
 from l3d_app.tasks.common import require_positive
 
@@ -40,11 +45,16 @@ def sampling_variance(cfg, ctx) -> dict:
         measured = {m: [] for m in ("uniform", "stratified")}
         for n in ns:
             row = {"density": name, "n_samples": n, "tau": round(tau, 6)}
-            for method in measured:
-                est = optical_depth_estimates(density, near, far, n, int(cfg.rays), method, ctx.generator)
-                measured[method].append(float(est.var()))
+            for method in (*measured, "evenly"):
+                t = sample_positions(near, far, n, int(cfg.rays), method, ctx.generator)
+                est = estimates_at(density, t, near, far, method)
                 row[f"{method}_mean"] = round(float(est.mean()), 6)
                 row[f"{method}_var"] = float(est.var())
+                row[f"{method}_range"] = float(est.max() - est.min())      # across rays: exactly 0 when equal
+                row[f"{method}_spread"] = round(position_spread(t), 6)
+                if method in measured:
+                    measured[method].append(float(est.var()))
+            row["evenly_error"] = round(row["evenly_mean"] - tau, 6)
             row["uniform_var_exact"] = uniform_variance(density, near, far, n)
             if isinstance(density, Slab):
                 row["stratified_var_exact"] = stratified_variance_slab(density, near, far, n)
@@ -65,5 +75,12 @@ def sampling_variance(cfg, ctx) -> dict:
     body = "".join(f"| {r['density']} | {r['n_samples']} | {r['uniform_var']:.4g} | {r['uniform_var_exact']:.4g} | "
                    f"{r['stratified_var']:.4g} | {r.get('stratified_var_exact', float('nan')):.4g} | "
                    f"{r['uniform_mean']:.4f} | {r['stratified_mean']:.4f} | {r['tau']:.4f} |\n" for r in rows)
-    ctx.path("table.md").write_text(head + body)
+    even = "\n| density | N | evenly spaced: estimate | its error | range across rays | sample-position " \
+           "spread | stratified: mean | range across rays | sample-position spread |\n|---|---|---|---|---|---|---|---|---|\n"
+    even += "".join(f"| {r['density']} | {r['n_samples']} | {r['evenly_mean']:.4f} | {r['evenly_error']:+.4f} | "
+                    f"{r['evenly_range']:.3g} | {r['evenly_spread']:.3g} | {r['stratified_mean']:.4f} | "
+                    f"{r['stratified_range']:.4g} | {r['stratified_spread']:.4g} |\n" for r in rows)
+    ctx.path("table.md").write_text(head + body + even)
+    print(f"evenly spaced against stratified samples ({cfg.rays} rays of length {far - near:g}):{even}", flush=True)
+    metrics["evenly_max_spread"] = max(max(r["evenly_range"], r["evenly_spread"]) for r in rows)
     return {**metrics, "rays": int(cfg.rays), "rows": rows}

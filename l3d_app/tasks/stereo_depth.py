@@ -9,6 +9,10 @@ Writes ``stereo.png`` (depth | disparity | recovered depth | |error|, depths on 
 range), ``error_vs_depth.png`` (first-order curves ``Z^2 sigma / (f B)`` per baseline with
 the measured per-depth-bin RMS as points), ``table.md`` and metrics.json with one row per
 setting: the reference rig and one factor varied at a time.
+
+``preset=exercise``: the worked exercise instead, no rendering: the ``exercise`` rig (focal 1000 px,
+baseline 0.12 m) at depths 1-100 m with a disparity error of +-1 px, as a table printed on stdout and
+written to ``table.md`` (:mod:`l3d_app.metrics.stereo_table`), its rows in metrics.json.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import torch
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import look_at_cameras
 from l3d_app.metrics.stereo_error import binned_rmse, noisy_depth, simulate_depth_error
+from l3d_app.metrics.stereo_table import disparity_error_markdown, disparity_error_rows
 from l3d_app.registry import DATASETS, RENDERERS, TASKS
 from l3d_app.render.volume.diagnostics import depth_colormap
 from l3d_app.runtime.config_values import config_floats
@@ -47,9 +52,30 @@ def _table(rows) -> str:
                           f"{r['rmse']:.5f} | {r['rmse_first_order']:.5f} | {r['ratio']:.3f} |\n" for r in rows)
 
 
+def _exercise(cfg, ctx) -> dict:
+    """The worked exercise's table for the ``exercise`` rig: printed, written to table.md, returned."""
+    ex = cfg.exercise
+    require_positive(ex, "focal_px", "baseline", "disparity_error")
+    depths = config_floats(ex.depths, "exercise.depths")
+    if not depths or min(depths) <= 0:
+        raise UserError(f"exercise.depths must be a non-empty list of positive depths (m), got {depths}")
+    f, b, dd = float(ex.focal_px), float(ex.baseline), float(ex.disparity_error)
+    rows = disparity_error_rows(f, b, depths, dd)
+    table = disparity_error_markdown(rows, dd)
+    ctx.path("table.md").write_text(f"focal {f:g} px, baseline {b:g} m, disparity error +-{dd:g} px\n\n" + table)
+    print(f"stereo exercise: focal {f:g} px, baseline {b:g} m, disparity error +-{dd:g} px\n{table}", flush=True)
+    return {"preset": "exercise", "focal_px": f, "baseline": b, "disparity_error": dd,
+            "rows": [{k: (None if v == float("inf") else round(v, 6)) for k, v in r.items()} for r in rows]}
+
+
 @TASKS.register("stereo_depth")
 def stereo_depth(cfg, ctx) -> dict:
-    """Render the depth, simulate the rig, write pictures, table and plot."""
+    """Render the depth, simulate the rig, write pictures, table and plot (or the exercise's table)."""
+    preset = str(cfg.get("preset", "scene"))
+    if preset not in ("scene", "exercise"):
+        raise UserError(f"preset must be scene or exercise, got {preset!r}")
+    if preset == "exercise":
+        return _exercise(cfg, ctx)
     require_positive(cfg, "image_size", "distance", "fov", "baseline", "sigma_px", "trials")
     if cfg.get("focal_px") is not None:          # null: the camera's
         require_positive(cfg, "focal_px")

@@ -1,4 +1,8 @@
-"""svr_train: train an image -> 3D model (small CNN encoder + ``decoder=vox|point|mesh|implicit|pseudo``).
+"""svr_train: train an image -> 3D model (``encoder=cnn|resnet18`` + ``decoder=vox|point|mesh|implicit|pseudo``).
+
+``encoder=resnet18`` is the course's encoder (ResNet-18 without its classifier, 512 features,
+:mod:`l3d_app.models.resnet_encoder`), randomly initialised or, with ``encoder_weights=FILE``
+(``encoder.weights=FILE``), started from a local state dict; nothing is downloaded.
 
 Each step draws ``batch_size`` (object, view) pairs from the training objects (the run's
 seeded generator, so a resumed run draws what an uninterrupted one would), encodes the
@@ -20,8 +24,10 @@ from __future__ import annotations
 
 import torch
 
+from l3d_app.errors import UserError
 from l3d_app.losses.svr import svr_loss
 from l3d_app.metrics.f1_curve import f1_table
+from l3d_app.models.resnet_encoder import load_resnet18_weights
 from l3d_app.models.svr_model import MODEL_FILE, build_svr_model, n_params, save_svr_model
 from l3d_app.pipelines.svr import geometry_of, make_batch, predict_points
 from l3d_app.registry import TASKS
@@ -46,7 +52,13 @@ def svr_train(cfg, ctx) -> dict:
     require_eval_view(cfg, data)
     geometry = geometry_of(data)
     encoder_cfg, decoder_cfg = plain(cfg.encoder), plain(cfg.decoder)
-    model = build_svr_model(encoder_cfg, decoder_cfg, geometry).to(ctx.device)
+    weights = encoder_cfg.pop("weights", None) or cfg.get("encoder_weights")     # resnet18: a local file, read here
+    model = build_svr_model(encoder_cfg, decoder_cfg, geometry)
+    if weights:
+        if encoder_cfg.get("name") != "resnet18":
+            raise UserError(f"encoder weights are read by encoder=resnet18 only, not encoder={encoder_cfg.get('name')}")
+        load_resnet18_weights(model.encoder, weights)
+    model = model.to(ctx.device)
     opt = torch.optim.Adam(model.parameters(), lr=float(cfg.lr))
     iters = int(cfg.iters)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=iters, eta_min=float(cfg.lr) * float(cfg.lr_floor))

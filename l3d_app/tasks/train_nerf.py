@@ -2,8 +2,9 @@
 
 ``task=train_nerf`` (fast default): ``model=grid_field`` (multi-resolution grid + small MLP),
 ``sampler=occupancy`` (stratified samples in the scene box, empty cells skipped),
-``optim=adam_step``. ``task=nerf_baseline`` is the course's setting on the same code
-(``model=nerf_mlp``, ``sampler=stratified``, 128 samples, 1024 rays, lr 5e-4).
+``optim=adam_step``. ``experiment=nerf_baseline`` is the course's setting on the same code
+(``model=nerf_mlp``, ``sampler=hierarchical``: coarse and fine networks, 64 + 128 samples, 1024 rays, lr 5e-4);
+an estimator that owns a network (the coarse one) gets it from ``attach_fields`` and adds its own loss.
 
 Each step: ``batch_rays`` random pixels of the TRAIN views, colour MSE. Every ``eval_every``
 steps the shared loop evaluates the VALIDATION views (``eval_views`` of them; PSNR / SSIM and
@@ -59,9 +60,10 @@ def train_nerf(cfg, ctx) -> dict:
     box = data.scene_box.tolist()
     model = MODELS.build(cfg.model, scene_box=box).to(ctx.device)
     sampler = SAMPLERS.build(cfg.sampler, scene_box=box).to(ctx.device)
+    sampler.attach_fields(lambda: MODELS.build(cfg.model, scene_box=box).to(ctx.device))   # hierarchical: coarse
     # What lies outside the scene box: learnt when the data does not know it (real captures).
     background = background_parameter(cfg.learn_background, data)
-    params = list(model.parameters()) + ([background["rgb"]] if background["rgb"].requires_grad else [])
+    params = list(model.parameters()) + list(sampler.parameters()) + ([background["rgb"]] if background["rgb"].requires_grad else [])
     opt, scheds = build_optimizer(cfg.optim, params, int(cfg.iters))
     trainable = Trainable({"field": model, "background": background}, opt, extra={"sampler": sampler},
                           schedulers=scheds)
@@ -85,7 +87,10 @@ def train_nerf(cfg, ctx) -> dict:
         idx = randint(0, n_rays, (batch,), ctx.generator, ctx.device)
         out = render_fn(flat_o[idx], flat_d[idx], perturb=bool(cfg.perturb), generator=ctx.generator)
         stats["samples_per_ray"] = float(out["samples_per_ray"])
-        return {"loss": ((out["color"] - flat_rgb[idx]) ** 2).mean(), "samples_per_ray": out["samples_per_ray"],
+        loss = ((out["color"] - flat_rgb[idx]) ** 2).mean()
+        proposal = sampler.training_loss(flat_rgb[idx])          # hierarchical: the coarse network's colour loss
+        extra = {} if proposal is None else {"fine_loss": loss.detach(), "coarse_loss": proposal.detach()}
+        return {"loss": loss if proposal is None else loss + proposal, **extra, "samples_per_ray": out["samples_per_ray"],
                 "lr": torch.tensor(opt.param_groups[0]["lr"]),
                 **{k: torch.tensor(float(v)) for k, v in sampler.stats().items()}}
 
@@ -154,7 +159,7 @@ def train_nerf(cfg, ctx) -> dict:
         metrics["gif_frames"] = write_field_turntables(cfg, ctx, data, {"turntable.gif": color_depth_frames(
             render_fn, int(cfg.chunk))}, budget)
     metrics.update({**{k: v for k, v in result.val_metrics().items() if k in ("val_psnr", "val_ssim")},
-                    **result.timing(), "n_params": sum(p.numel() for p in model.parameters()),
+                    **result.timing(), "n_params": sum(p.numel() for p in [*model.parameters(), *sampler.parameters()]),
                     **{k: round(float(v), 5) for k, v in figures().items()}, "history": result.history_rows()})
     metrics["budget_stop"] = result.budget_stop
     metrics["background"] = [round(float(c), 4) for c in background["rgb"].detach().clamp(0, 1)]

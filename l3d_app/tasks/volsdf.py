@@ -106,7 +106,7 @@ def volsdf(cfg, ctx) -> dict:
         o, d = rays.origins[idx], torch.nn.functional.normalize(rays.dirs[idx], dim=-1)
         out = render(o, d, perturb=True, generator=ctx.generator)
         loss, terms = losses(Batch(state, idx, o, d, rays.rgb[idx], out, nominal / max(iters, 1), ctx.generator), iters)
-        last.update({k: float(out[k]) for k in ("samples_per_ray", "fine_samples_per_ray")})
+        last.update({k: float(out[k]) for k in ("samples_per_ray", "fine_samples_per_ray") if k in out})
         return {**logs, **terms, **{k: torch.tensor(float(v)) for k, v in dens.stats().items()}, "loss": loss,
                 "samples_per_ray": out["samples_per_ray"], "nominal_step": torch.tensor(float(nominal)),
                 "predicted_steps": torch.tensor(horizon.steps)}

@@ -24,10 +24,11 @@ def render_field_rays(field: Field, origins: torch.Tensor, dirs: torch.Tensor, e
     """Render R rays (unit ``dirs``) of ``field`` with samples from ``estimator``.
 
     ``density_field`` (default ``field``): what an estimator that probes the scene (importance)
-    calls ``density`` on. Returns :func:`~l3d_app.render.volume.rendering.render_rays`' outputs
+    calls ``density`` on; ``background`` also reaches the estimator (one that renders its own proposal
+    network composites over it). Returns :func:`~l3d_app.render.volume.rendering.render_rays`' outputs
     (color (R, C), depth (R,), opacity (R,), per-sample weights, samples_per_ray = field
     evaluations per ray).
     """
-    t0, t1, rays = estimator.sampling(origins, dirs, perturb=perturb, generator=generator,
+    t0, t1, rays = estimator.sampling(origins, dirs, perturb=perturb, generator=generator, background=background,
                                       field=density_field if density_field is not None else field)
     return render_rays(t0, t1, rays, origins.shape[0], radiance_fn(field, origins, dirs), background=background)

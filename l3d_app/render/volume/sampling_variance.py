@@ -5,6 +5,9 @@ along a ray (world units along a unit ray). Two unbiased estimators with ``N`` s
 
 - uniform: ``t_i ~ U(near, far)`` i.i.d., ``tau_hat = L / N * sum_i sigma(t_i)`` (``L = far - near``);
   ``Var = (L * int sigma^2 dt - tau^2) / N``, the 1/N Monte-Carlo rate;
+- evenly spaced (the course's ``linspace``: stratified without the jitter): the same samples on every
+  ray of the same length, so the estimate has zero spread across rays, and a fixed error (bias)
+  instead of a variance;
 - stratified (NeRF's, :func:`l3d_app.render.volume.samplers.stratified_samples` with ``perturb``): one
   ``t_i`` uniform in each bin ``[e_i, e_{i+1}]`` (:func:`~l3d_app.render.volume.samplers.bin_edges` of the unperturbed samples: the end bins are
   half as wide as the others),
@@ -27,7 +30,7 @@ from l3d_app.errors import UserError
 from l3d_app.render.volume.samplers import bin_edges, stratified_samples
 from l3d_app.runtime.random import rand
 
-METHODS = ("uniform", "stratified")
+METHODS = ("uniform", "evenly", "stratified")
 
 
 @dataclass
@@ -62,23 +65,44 @@ class GaussianBump:
         return self.s ** power * w * math.sqrt(math.pi / 2) * (math.erf(b) - math.erf(a))
 
 
-def optical_depth_estimates(density, near: float, far: float, n_samples: int, n_rays: int, method: str,
-                            generator: torch.Generator) -> torch.Tensor:
-    """(n_rays,) float64 estimates of ``int_near^far density`` with ``n_samples`` samples per ray."""
+def sample_positions(near: float, far: float, n_samples: int, n_rays: int, method: str,
+                     generator: torch.Generator) -> torch.Tensor:
+    """(n_rays, n_samples) float64 sample distances of ``method`` on rays of length ``far - near``."""
     if method not in METHODS:
         raise UserError(f"unknown sampling method '{method}'; known: {', '.join(METHODS)}")
     if not far > near or int(n_samples) < 1 or int(n_rays) < 1:
         raise UserError(f"need far > near, n_samples >= 1, n_rays >= 1; got {near}, {far}, {n_samples}, {n_rays}")
-    if method == "stratified" and int(n_samples) < 2:
-        raise UserError("stratified sampling needs n_samples >= 2 (one sample is not jittered)")
+    if method != "uniform" and int(n_samples) < 2:
+        raise UserError(f"{method} sampling needs n_samples >= 2 (one sample has no bins)")
     if method == "uniform":
-        t = near + (far - near) * rand((int(n_rays), int(n_samples)), generator).to(torch.float64)
+        return near + (far - near) * rand((int(n_rays), int(n_samples)), generator).to(torch.float64)
+    return stratified_samples(near, far, int(n_samples), n_rays=int(n_rays), perturb=method == "stratified",
+                              generator=generator, dtype=torch.float64)
+
+
+def optical_depth_estimates(density, near: float, far: float, n_samples: int, n_rays: int, method: str,
+                            generator: torch.Generator) -> torch.Tensor:
+    """(n_rays,) float64 estimates of ``int_near^far density`` with ``n_samples`` samples per ray."""
+    return estimates_at(density, sample_positions(near, far, n_samples, n_rays, method, generator), near, far,
+                        method)
+
+
+def estimates_at(density, t: torch.Tensor, near: float, far: float, method: str) -> torch.Tensor:
+    """(R,) float64 optical-depth estimates of ``method`` from its sample distances ``t`` (R, S): the mean
+    density times the length for uniform draws, each sample times its stratum's width otherwise."""
+    n_samples = t.shape[-1]
+    if method == "uniform":
         return (far - near) / n_samples * density(t).sum(dim=-1)
-    t = stratified_samples(near, far, int(n_samples), n_rays=int(n_rays), perturb=True, generator=generator,
-                           dtype=torch.float64)
     strata = stratified_samples(near, far, int(n_samples), n_rays=1, dtype=torch.float64)  # unperturbed
     widths = bin_edges(strata, near, far).diff(dim=-1)              # (1, S): the strata, not the draws
     return (density(t) * widths).sum(dim=-1)
+
+
+def position_spread(t: torch.Tensor) -> float:
+    """Mean over the sample index of the standard deviation across rays of the sample distance (t (R, S)):
+    0 for evenly spaced samples; ``(far - near) / (S sqrt(12))`` for stratified ones (one uniform draw per bin,
+    the two end bins half wide)."""
+    return float(t.std(dim=0, unbiased=False).mean())
 
 
 def uniform_variance(density, near: float, far: float, n_samples: int) -> float:

@@ -10,9 +10,11 @@ in ``conf/sampler/``.
 """
 
 from l3d_app.render.volume.estimators.base import Estimator
+from l3d_app.render.volume.estimators.hierarchical import HierarchicalEstimator
 from l3d_app.render.volume.estimators.importance import ImportanceEstimator
 from l3d_app.render.volume.estimators.occupancy import OccupancyEstimator
 from l3d_app.render.volume.estimators.sdf_proposal import SDFCacheProposal
 from l3d_app.render.volume.estimators.stratified import StratifiedEstimator
 
-__all__ = ["Estimator", "StratifiedEstimator", "OccupancyEstimator", "ImportanceEstimator", "SDFCacheProposal"]
+__all__ = ["Estimator", "StratifiedEstimator", "OccupancyEstimator", "ImportanceEstimator", "HierarchicalEstimator",
+           "SDFCacheProposal"]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Optional, Sequence, Tuple
+from typing import Callable, Optional, Sequence, Tuple
 
 import torch
 
@@ -59,6 +59,16 @@ class Estimator(torch.nn.Module):
     def stats(self) -> dict:
         """Figures worth reporting next to the error (e.g. the occupied fraction)."""
         return {}
+
+    def attach_fields(self, build_field: Callable[[], torch.nn.Module]) -> None:
+        """Build the networks this estimator owns (a proposal network) with ``build_field()``, a new
+        field of the task's architecture; none here. Their parameters are the estimator's own."""
+        return None
+
+    def training_loss(self, target: torch.Tensor) -> Optional[torch.Tensor]:
+        """The loss of what this estimator trains itself (a proposal network's colour against ``target``
+        (R, 3) of the last training render), added to the task's; None here."""
+        return None
 
 
 def segment_ends(t: torch.Tensor, far: torch.Tensor) -> torch.Tensor:

@@ -48,3 +48,7 @@ class ImportanceEstimator(StratifiedEstimator):
             t = importance_samples(t_c, w, self.n_fine, perturb=perturb, generator=generator,
                                    padding=self.padding, near=near, far=far)
         return pack_samples(t, segment_ends(t, far), hit[:, None].expand_as(t))
+
+    def stats(self) -> dict:
+        """The no-grad coarse probe's samples per ray (the rendered ones are the task's ``samples_per_ray``)."""
+        return {"coarse_samples_per_ray": float(self.n_samples)}

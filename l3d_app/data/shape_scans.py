@@ -1,0 +1,330 @@
+"""Built-in procedural scans: 12 classes of objects, some differing in one part, seen by a single-view
+scanner (partial) with noise, every point labelled with its part.
+
+Classes (:data:`CLASS_NAMES`) and the part that separates the confusable ones::
+
+    chair     seat, back, legs            armchair  = chair + arms       stool = chair - back (smaller seat)
+    table     top, legs (wide, thin top)  bench     long low seat, legs
+    vase      body, neck, foot            bottle    body, long thin neck, no foot
+    cup       body                        mug       = cup + handle       bowl  wide low body, foot
+    lamp      lamp base, straight stem, shade         desk_lamp = lamp with a bent stem
+
+Part labels (:data:`PART_NAMES`, one space for all classes): seat, back, legs, arms, top, body, neck,
+foot, handle, lamp_base, stem, shade.
+
+Each object is assembled from primitive meshes (its own seed fixes every size and style), sampled by
+area (``oversample`` x ``num_points`` surface points, each with the part of its face), then scanned:
+a viewpoint at a random azimuth and an elevation in ``elevation`` degrees, and only the samples a
+scanner there sees are kept (:func:`l3d_app.geometry.partial_scan.visible_points`: orthographic
+z-buffer of ``scan_grid`` cells, depth tolerance ``scan_tolerance``). ``num_points`` of the visible
+samples are drawn (with repeats when fewer are visible), the cloud is centred (bounding box) and
+scaled so that its farthest point is at distance 1, and Gaussian noise of ``noise`` (in those units) is
+added to every coordinate. A mug seen from the side its handle is not on is a cup: some clouds are
+ambiguous by construction.
+
+Generated on first use and cached as ``shape_scans_<hash>.npz`` in ``cache_dir`` (default
+``~/.cache/l3d_app``); the hash covers every generation knob. Object ``i`` of class ``c`` is seeded by
+``(seed, c, i)``; the first ``train_per_class`` of each class are train, the rest test; validation is
+``val_fraction`` of train (per class, ``val_seed``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from l3d_app.data.point_sets import PointCloudData, PointSplit
+from l3d_app.data.shape_parts import default_cache_dir, lathe
+from l3d_app.errors import UserError
+from l3d_app.geometry import primitives as prim
+from l3d_app.geometry.mesh import Mesh
+from l3d_app.geometry.partial_scan import view_direction, visible_points
+from l3d_app.geometry.sampling import sample_surface
+from l3d_app.geometry.transforms import axis_rotation
+from l3d_app.registry import DATASETS
+from l3d_app.runtime.config_values import config_floats, config_words
+from l3d_app.runtime.files import atomic_path
+from l3d_app.runtime.progress import progress
+
+CLASS_NAMES = ("chair", "armchair", "stool", "table", "bench", "vase", "bottle", "cup", "mug", "bowl", "lamp",
+               "desk_lamp")
+PART_NAMES = ("seat", "back", "legs", "arms", "top", "body", "neck", "foot", "handle", "lamp_base", "stem", "shade")
+SEAT, BACK, LEGS, ARMS, TOP, BODY, NECK, FOOT, HANDLE, LBASE, STEM, SHADE = range(12)
+VERSION = 1  # bump when the generators change (invalidates caches)
+
+Part = Tuple[Mesh, int]
+
+
+def _box(center, size) -> Mesh:
+    return prim.box([float(c) for c in center], [float(s) for s in size])
+
+
+def _cyl(center, radius, height, n: int = 14) -> Mesh:
+    return prim.transformed(prim.cylinder(float(radius), float(height), n), translation=[float(c) for c in center])
+
+
+def _legs(rng, w: float, d: float, h: float, thick: float, inset: float, splay: float = 0.0) -> List[Part]:
+    """Four legs under a w x d rectangle from the floor to height h (round or square, optionally splayed)."""
+    round_legs = rng.random() < 0.5
+    out = []
+    for sx in (-1, 1):
+        for sz in (-1, 1):
+            x, z = sx * (w / 2 - thick / 2 - inset), sz * (d / 2 - thick / 2 - inset)
+            leg = _cyl((0, 0, 0), thick / 2, h, 10) if round_legs else _box((0, 0, 0), (thick, h, thick))
+            rot = axis_rotation("z", -sx * splay) @ axis_rotation("x", sz * splay)
+            out.append((prim.transformed(leg, rotation=rot, translation=(x, h / 2, z)), LEGS))
+    return out
+
+
+def _seating(rng, back: bool, arms: bool, w: float, d: float, h: float) -> List[Part]:
+    """A seat at height h on four legs, with a back and arms when asked."""
+    t = rng.uniform(0.06, 0.12)
+    parts: List[Part] = [(_box((0, h - t / 2, 0), (w, t, d)), SEAT)]
+    parts += _legs(rng, w, d, h - t, rng.uniform(0.05, 0.09), rng.uniform(0.0, 0.06))
+    if back:
+        bh, bt = rng.uniform(0.6, 1.0), rng.uniform(0.05, 0.09)
+        rot = axis_rotation("x", -rng.uniform(0.0, 15.0))
+        if rng.random() < 0.6:
+            pieces = [_box((0, bh / 2, 0), (w, bh, bt))]
+        else:
+            post = rng.uniform(0.05, 0.08)
+            pieces = [_box((sx * (w / 2 - post / 2), bh / 2, 0), (post, bh, bt)) for sx in (-1, 1)]
+            slats = int(rng.integers(2, 5))
+            pieces += [_box((0, bh * (0.3 + 0.7 * (k + 0.5) / slats), 0), (w - 2 * post, bh * 0.12, bt * 0.8))
+                       for k in range(slats)]
+        parts += [(prim.transformed(p, rotation=rot, translation=(0.0, h, -d / 2 + bt / 2)), BACK) for p in pieces]
+    if arms:
+        ah, aw = rng.uniform(0.2, 0.32), rng.uniform(0.06, 0.1)
+        for sx in (-1, 1):
+            x = sx * (w / 2 + aw / 2)
+            parts.append((_box((x, h + ah, 0.0), (aw, 0.05, d * 0.85)), ARMS))
+            parts.append((_box((x, h + ah / 2, d * 0.3), (aw * 0.6, ah, aw * 0.6)), ARMS))
+    return parts
+
+
+def _chair(rng) -> List[Part]:
+    return _seating(rng, True, False, rng.uniform(0.8, 1.1), rng.uniform(0.75, 1.05), rng.uniform(0.75, 1.0))
+
+
+def _armchair(rng) -> List[Part]:
+    return _seating(rng, True, True, rng.uniform(0.8, 1.1), rng.uniform(0.75, 1.05), rng.uniform(0.75, 1.0))
+
+
+def _stool(rng) -> List[Part]:
+    w = rng.uniform(0.45, 0.7)
+    h = rng.uniform(0.8, 1.2)
+    if rng.random() < 0.5:                          # round seat, splayed legs
+        t = rng.uniform(0.06, 0.1)
+        parts: List[Part] = [(_cyl((0, h - t / 2, 0), w / 2, t, 20), SEAT)]
+        parts += _legs(rng, w * 0.8, w * 0.8, h - t, rng.uniform(0.04, 0.07), 0.0, rng.uniform(3.0, 8.0))
+        return parts
+    return _seating(rng, False, False, w, w, h)
+
+
+def _table(rng) -> List[Part]:
+    w, d, h, t = rng.uniform(1.4, 2.2), rng.uniform(0.8, 1.2), rng.uniform(0.7, 0.95), rng.uniform(0.03, 0.07)
+    parts: List[Part] = [(_box((0, h - t / 2, 0), (w, t, d)), TOP)]
+    return parts + _legs(rng, w, d, h - t, rng.uniform(0.05, 0.1), rng.uniform(0.0, 0.15))
+
+
+def _bench(rng) -> List[Part]:
+    w, d, h = rng.uniform(1.6, 2.4), rng.uniform(0.35, 0.55), rng.uniform(0.4, 0.55)
+    t = rng.uniform(0.06, 0.12)
+    parts: List[Part] = [(_box((0, h - t / 2, 0), (w, t, d)), SEAT)]
+    if rng.random() < 0.5:                           # two slab legs
+        for sx in (-1, 1):
+            parts.append((_box((sx * (w / 2 - 0.15), (h - t) / 2, 0), (0.06, h - t, d * 0.9)), LEGS))
+        return parts
+    return parts + _legs(rng, w, d, h - t, rng.uniform(0.05, 0.08), rng.uniform(0.0, 0.1))
+
+
+def _vase(rng) -> List[Part]:
+    foot_h, body_h, r0 = rng.uniform(0.06, 0.14), rng.uniform(0.8, 1.3), rng.uniform(0.3, 0.45)
+    s = np.linspace(0.0, 1.0, 12)
+    radii = r0 * (1 + rng.uniform(0.2, 0.6) * np.sin(np.pi * s)) * (1 - 0.45 * s ** 2)
+    heights = foot_h + body_h * s
+    parts: List[Part] = [(lathe(radii, heights, 24, cap_bottom=True), BODY)]
+    neck_r, neck_h, top = radii[-1] * rng.uniform(0.8, 1.0), rng.uniform(0.15, 0.35), heights[-1]
+    parts.append((lathe([radii[-1], neck_r, neck_r * rng.uniform(1.2, 1.6)],
+                        [top, top + neck_h, top + neck_h + 0.06], 24), NECK))
+    fr = radii[0] * rng.uniform(0.8, 1.1)
+    parts.append((lathe([fr, fr, radii[0]], [0.0, foot_h * 0.6, foot_h], 24, cap_bottom=True), FOOT))
+    return parts
+
+
+def _bottle(rng) -> List[Part]:
+    r, body_h = rng.uniform(0.22, 0.35), rng.uniform(0.8, 1.2)
+    shoulder = rng.uniform(0.12, 0.25)
+    neck_r, neck_h = r * rng.uniform(0.3, 0.45), rng.uniform(0.35, 0.6)
+    parts: List[Part] = [(lathe([r, r, neck_r], [0.0, body_h, body_h + shoulder], 24, cap_bottom=True), BODY)]
+    top = body_h + shoulder
+    parts.append((lathe([neck_r, neck_r, neck_r * 1.1], [top, top + neck_h, top + neck_h + 0.03], 16, cap_top=True),
+                  NECK))
+    return parts
+
+
+def _cup_body(rng) -> Tuple[List[Part], float, float]:
+    r, h = rng.uniform(0.32, 0.45), rng.uniform(0.7, 1.0)
+    taper = rng.uniform(0.75, 1.0)
+    wall = 0.04
+    outer = lathe([r * taper, r], [0.0, h], 24, cap_bottom=True)
+    inner = lathe([r - wall, (r * taper) - wall], [h, wall], 24, cap_top=True)      # open top: the inside wall
+    return [(outer, BODY), (inner, BODY)], r, h
+
+
+def _cup(rng) -> List[Part]:
+    return _cup_body(rng)[0]
+
+
+def _mug(rng) -> List[Part]:
+    parts, r, h = _cup_body(rng)
+    major, minor = rng.uniform(0.18, 0.28) * h, rng.uniform(0.035, 0.06)
+    ring = prim.transformed(prim.torus(major, minor, 24, 8), rotation=axis_rotation("x", 90.0))   # in the XY plane
+    keep = (ring.verts[ring.faces].mean(1)[:, 0] > -minor * 0.5)          # the outer half of the ring
+    half = Mesh(verts=ring.verts, faces=ring.faces[keep])
+    parts.append((prim.transformed(half, translation=(r * 0.97, h * rng.uniform(0.45, 0.6), 0.0)), HANDLE))
+    return parts
+
+
+def _bowl(rng) -> List[Part]:
+    r, h = rng.uniform(0.6, 0.9), rng.uniform(0.3, 0.5)
+    a = np.linspace(0.0, np.pi / 2, 9)
+    foot_h = rng.uniform(0.04, 0.08)
+    outer = lathe(r * np.sin(a) * 0.999 + 1e-3, foot_h + h * (1 - np.cos(a)), 24)
+    inner = lathe((r - 0.04) * np.sin(a[::-1]) + 1e-3, foot_h + 0.04 + (h - 0.04) * (1 - np.cos(a[::-1])), 24)
+    fr = r * rng.uniform(0.3, 0.45)
+    foot = lathe([fr, fr], [0.0, foot_h], 24, cap_bottom=True)
+    return [(outer, BODY), (inner, BODY), (foot, FOOT)]
+
+
+def _lamp_parts(rng, bent: bool) -> List[Part]:
+    bh, br = rng.uniform(0.05, 0.12), rng.uniform(0.25, 0.4)
+    parts: List[Part] = [(_cyl((0, bh / 2, 0), br, bh, 20) if rng.random() < 0.6 else
+                          _box((0, bh / 2, 0), (1.8 * br, bh, 1.8 * br)), LBASE)]
+    stem_h, stem_r = rng.uniform(0.8, 1.4), rng.uniform(0.025, 0.04)
+    parts.append((_cyl((0, bh + stem_h / 2, 0), stem_r, stem_h, 10), STEM))
+    top = np.array([0.0, bh + stem_h, 0.0])
+    sh, r_top, r_bot = rng.uniform(0.3, 0.5), rng.uniform(0.1, 0.2), rng.uniform(0.25, 0.4)
+    shade = lathe([r_bot, r_top], [-sh * 0.6, sh * 0.4], 24) if rng.random() < 0.6 else \
+        lathe([r_bot, r_bot], [-sh * 0.6, sh * 0.4], 24)
+    if bent:                                                     # a second arm at an angle, the shade tilted
+        arm_l, arm_a = rng.uniform(0.45, 0.8), rng.uniform(35.0, 70.0)
+        rot = axis_rotation("x", arm_a)
+        parts.append((prim.transformed(_cyl((0, arm_l / 2, 0), stem_r, arm_l, 10), rotation=rot,
+                                       translation=top.tolist()), STEM))
+        top = top + (rot.double() @ torch.tensor([0.0, arm_l, 0.0], dtype=torch.float64)).numpy()
+        shade = prim.transformed(prim.transformed(shade, rotation=axis_rotation("x", 180.0)),
+                                 rotation=axis_rotation("x", arm_a + rng.uniform(60.0, 100.0)), translation=top.tolist())
+    else:
+        shade = prim.transformed(shade, translation=top.tolist())
+    parts.append((shade, SHADE))
+    return parts
+
+
+GENERATORS: Dict[str, Callable[[np.random.Generator], List[Part]]] = {
+    "chair": _chair, "armchair": _armchair, "stool": _stool, "table": _table, "bench": _bench, "vase": _vase,
+    "bottle": _bottle, "cup": _cup, "mug": _mug, "bowl": _bowl, "lamp": lambda rng: _lamp_parts(rng, False),
+    "desk_lamp": lambda rng: _lamp_parts(rng, True)}
+
+
+def scan_object(parts: List[Part], num_points: int, generator: torch.Generator, azimuth: float, elevation: float,
+                oversample: int = 8, grid: int = 24, tolerance: float = 0.08, noise: float = 0.01
+                ) -> Tuple[torch.Tensor, torch.Tensor, float]:
+    """A noisy single-view scan of the object made of ``parts`` (see the module docstring).
+
+    Returns points (P, 3) float32 (centred, farthest point at distance 1, then noise), their part labels
+    (P,) int64 and the visible share of the dense surface samples."""
+    mesh = prim.join([m for m, _ in parts])
+    face_part = torch.cat([torch.full((m.num_faces,), label, dtype=torch.int64) for m, label in parts])
+    samples = sample_surface(mesh, int(oversample) * int(num_points), generator)
+    pts = samples.points.double()
+    lo, hi = pts.min(0).values, pts.max(0).values
+    pts = (pts - (lo + hi) / 2) / (pts - (lo + hi) / 2).norm(dim=-1).max().clamp_min(1e-12)    # whole object: unit ball
+    seen = visible_points(pts, view_direction(azimuth, elevation).double(), int(grid), 1.0, float(tolerance))
+    index = seen.nonzero()[:, 0]
+    pick = torch.randperm(len(index), generator=generator)[:int(num_points)] if len(index) >= int(num_points) else \
+        torch.randint(0, len(index), (int(num_points),), generator=generator)
+    p, lab = pts[index[pick]], face_part[samples.face_index[index[pick]]]
+    lo, hi = p.min(0).values, p.max(0).values
+    p = p - (lo + hi) / 2
+    p = p / p.norm(dim=-1).max().clamp_min(1e-12)
+    p = p + float(noise) * torch.randn(p.shape, generator=generator, dtype=p.dtype)
+    return p.float(), lab, float(seen.double().mean())
+
+
+def generate(classes: Sequence[str], per_class: int, num_points: int, seed: int, elevation: Sequence[float],
+             noise: float, oversample: int, grid: int, tolerance: float) -> Tuple[np.ndarray, ...]:
+    """``per_class`` scans of each class: points (N, P, 3) float32, class labels (N,) uint8 (index in
+    :data:`CLASS_NAMES`), part labels (N, P) uint8, visible share (N,) float32; class by class."""
+    pts = np.empty((len(classes) * per_class, num_points, 3), np.float32)
+    parts = np.empty((len(classes) * per_class, num_points), np.uint8)
+    labels = np.empty(len(classes) * per_class, np.uint8)
+    seen = np.empty(len(classes) * per_class, np.float32)
+    jobs = [(c, i) for c in classes for i in range(per_class)]
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny tensors: one thread is faster than several
+    try:
+        for k, (c, i) in enumerate(progress(jobs, desc="shape_scans")):
+            cid = CLASS_NAMES.index(c)
+            rng = np.random.default_rng([seed, cid, i])
+            gen = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
+            azimuth, elev = rng.uniform(0.0, 360.0), rng.uniform(*elevation)
+            p, lab, share = scan_object(GENERATORS[c](rng), num_points, gen, azimuth, elev, oversample, grid,
+                                        tolerance, noise)
+            pts[k], parts[k], labels[k], seen[k] = p.numpy(), lab.numpy().astype(np.uint8), cid, share
+    finally:
+        torch.set_num_threads(threads)
+    return pts, labels, parts, seen
+
+
+@DATASETS.register("shape_scans")
+def shape_scans(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 100, test_per_class: int = 40,
+                num_points: int = 2048, seed: int = 0, elevation: Sequence[float] = (-10.0, 50.0),
+                noise: float = 0.01, oversample: int = 8, scan_grid: int = 24, scan_tolerance: float = 0.08,
+                cache_dir: Optional[str] = None, val_fraction: float = 0.1, val_seed: int = 0, kind: str = "cls",
+                device=None) -> PointCloudData:
+    """The built-in scans (see the module docstring), generated once and cached; both label kinds present."""
+    classes = config_words(classes, "data.classes")
+    unknown = [c for c in classes if c not in CLASS_NAMES]
+    if unknown or not classes:
+        raise UserError(f"unknown shape_scans class {unknown or classes}; known: {', '.join(CLASS_NAMES)}")
+    for key, value in (("train_per_class", train_per_class), ("test_per_class", test_per_class),
+                       ("num_points", num_points), ("oversample", oversample), ("scan_grid", scan_grid)):
+        if int(value) < 1:
+            raise UserError(f"data.{key} must be >= 1, got {value}")
+    lo, hi = config_floats(elevation, "data.elevation", 2)
+    if not (-90.0 <= lo <= hi <= 90.0) or float(noise) < 0 or not float(scan_tolerance) > 0:
+        raise UserError(f"need -90 <= data.elevation[0] <= [1] <= 90, data.noise >= 0 and data.scan_tolerance > 0; "
+                        f"got {[lo, hi]}, {noise}, {scan_tolerance}")
+    n = int(train_per_class) + int(test_per_class)
+    knobs = {"classes": classes, "n": n, "num_points": int(num_points), "seed": int(seed), "elevation": [lo, hi],
+             "noise": float(noise), "oversample": int(oversample), "grid": int(scan_grid),
+             "tolerance": float(scan_tolerance), "v": VERSION}
+    digest = hashlib.sha1(json.dumps(knobs, sort_keys=True).encode()).hexdigest()[:12]
+    folder = Path(cache_dir).expanduser() if cache_dir else default_cache_dir()
+    path = folder / f"shape_scans_{digest}.npz"
+    if path.exists():
+        with np.load(path) as z:
+            pts, labels, parts = z["points"], z["labels"], z["parts"]
+    else:
+        pts, labels, parts, seen = generate(classes, n, int(num_points), int(seed), (lo, hi), float(noise),
+                                            int(oversample), int(scan_grid), float(scan_tolerance))
+        try:
+            with atomic_path(path) as tmp:
+                with open(tmp, "wb") as f:
+                    np.savez(f, points=pts, labels=labels, parts=parts, seen=seen)
+        except OSError as err:  # read-only cache: keep going without it
+            print(f"l3d_app: warning: cannot cache shape_scans in {folder}: {err}")
+    within = np.arange(len(labels)) % n
+    splits = {}
+    for name, mask in (("train", within < int(train_per_class)), ("test", within >= int(train_per_class))):
+        splits[name] = PointSplit(torch.from_numpy(pts[mask]), labels=torch.from_numpy(labels[mask].astype(np.int64)),
+                                  parts=torch.from_numpy(parts[mask].astype(np.int64)))
+    return PointCloudData(splits["train"], splits["test"], list(CLASS_NAMES), list(PART_NAMES),
+                          source=f"shape_scans:{path}").with_val(val_fraction, val_seed)
