@@ -61,6 +61,24 @@ def test_seconds_left_and_a_validation_timed_by_the_task():
     assert timer.begin(0, 10, True, 5) is False and timer.after_loop_seconds(True) == 7.0
 
 
+def test_a_validation_priced_on_a_part_and_a_picture_before_training_that_fits_or_not():
+    clock = Clock(10.0)
+    timer = TimeBudget(590.0, reserve=5.0, clock=clock, evals_after=1.75)
+
+    def part():
+        clock.now += 3.0
+        return 1.0 / 16                              # a 16th of a validation's rays in 3 s
+    assert timer.price_from_part(part) == pytest.approx(48.0) and timer.eval_price == pytest.approx(48.0)
+    assert timer.begin(0, 10, True, 5) is False      # the loop takes that price: no pricing validation
+    # at 13 s: a 48 s picture ends by min(590 / 3, 13 + (590 - 13 - 48 x 2.75 - 5) / 2) = 196.67: it fits
+    assert timer.fits_before_training(48.0)
+    # 200 s: final work 200 x 2.75 + 5 = 555 s leaves 13 + (590 - 13 - 555) / 2 = 24 s: it does not
+    assert not timer.fits_before_training(200.0)
+    # the largest that fits: 13 + (572 - 2.75 p) / 2 >= 13 + p  <=>  p <= 572 / 4.75 = 120.4 s
+    assert timer.fits_before_training(120.0) and not timer.fits_before_training(121.0)
+    assert TimeBudget(0.0, clock=clock).fits_before_training(1e9)       # no budget: always
+
+
 def test_the_verdicts_of_a_loop_near_its_budget():
     """Steps of 10 s, budget 100 s, no validation: GO while one more step fits, then STOP; a
     validated loop first asks to CONFIRM its price, then stops on it."""

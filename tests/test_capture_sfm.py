@@ -84,6 +84,24 @@ def test_a_solved_capture_splits_like_colmap_and_is_reused(solved):
     assert abs(float(torch.dot(raw.up.double(), height_axis))) > 0.9
 
 
+def test_photos_train_at_image_size_on_the_long_side_with_the_cameras_scaled(solved, compose):
+    """SfM at the photos' size (160 x 120, undistorted), training at ``image_size`` = 80 on the long
+    side: intrinsics scaled by the exact size ratios, poses unchanged, the same solved model (no
+    second solve); the knob's default composes from data=images."""
+    root, folder, report, _ = solved
+    full = images(root=str(root / "photos"), cache_dir=str(root / "cache"), image_size=0)
+    small = images(root=str(root / "photos"), cache_dir=str(root / "cache"), image_size=80)
+    (h0, w0), (h, w) = full.image_size, small.image_size
+    assert w0 > h0 > 100 and w == 80 and h == round(h0 * 80 / w0)
+    for f, s in (("fx", w / w0), ("cx", w / w0), ("fy", h / h0), ("cy", h / h0)):
+        torch.testing.assert_close(getattr(small.cameras, f), getattr(full.cameras, f) * s)
+    assert torch.equal(small.cameras.R, full.cameras.R) and torch.equal(small.cameras.t, full.cameras.t)
+    torch.testing.assert_close(small.images.mean((1, 2)), full.images.mean((1, 2)), atol=0.01, rtol=0)
+    assert images(root=str(root / "photos"), cache_dir=str(root / "cache")).image_size == (h0, w0)  # under 256
+    assert compose("task=gs_train", "data=images", "data.root=x").data.image_size == 256
+    assert len([e for e in (root / "cache").iterdir() if not e.name.startswith(".")]) == 1
+
+
 def test_changed_photos_solve_again_and_settings_key_the_cache(solved, tmp_path):
     root, folder, _, _ = solved
     photos = tmp_path / "photos"

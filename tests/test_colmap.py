@@ -176,6 +176,28 @@ def test_the_scored_poses_take_no_part_in_the_set_up(tmp_path):
     np.testing.assert_allclose(b.cameras.centers().double()[b.test].numpy(), s * (C_test - c0), atol=1e-4)
 
 
+@pytest.mark.parametrize("size", [20, 32])
+def test_image_size_resizes_the_long_side_and_scales_the_intrinsics(tmp_path, size):
+    """Halved (20) and 0.8x (32): intrinsics scale by the exact factor, and each pixel centre shows the
+    pattern at its own pinhole coordinates (the written images are the analytic pattern)."""
+    R, t, K, pts, cols = scene(n=3)
+    write_scene(tmp_path, R, t, K, (W, H), pts, cols)
+    d = colmap(str(tmp_path), normalize=False, test_every=0, val_every=0, image_size=size)
+    s = size / W
+    assert d.image_size == (round(H * s), size)
+    for f, k in (("fx", 0), ("fy", 1), ("cx", 2), ("cy", 3)):
+        torch.testing.assert_close(getattr(d.cameras, f).double(), torch.from_numpy(K[:, k] * s), atol=1e-5, rtol=0)
+    h, w = d.image_size
+    v, u = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
+    for i in range(3):
+        ref = pattern((u - K[i, 2] * s) / (K[i, 0] * s), (v - K[i, 3] * s) / (K[i, 1] * s))
+        err = np.abs(d.images[i].numpy() - ref)[2:h - 2, 2:w - 2].max()     # the filter's blur of a smooth pattern
+        assert err < 0.015, err                   # half a pixel off reads 0.04-0.07
+    assert torch.equal(colmap(str(tmp_path), image_size=W).images, colmap(str(tmp_path)).images)   # not longer: as stored
+    with pytest.raises(UserError, match="image_size"):
+        colmap(str(tmp_path), image_size=-1)
+
+
 def test_pre_downscaled_image_folder(tmp_path):
     R, t, K, pts, cols = scene(n=4)
     write_scene(tmp_path, R, t, K, (W, H), pts, cols, image_dir="images_2", image_scale=2)

@@ -290,3 +290,64 @@ def test_train_nerf_keeps_its_mesh_seconds_only_when_it_extracts_a_mesh(compose,
         run_task(compose("task=train_nerf", "data.image_size=16", "data.n_train=4", "data.n_val=1", "data.n_test=1",
                          "before_after=false", "tensorboard=false", *overrides), out_dir=tmp_path)
     assert seen["reserve"] == expected
+
+
+@pytest.mark.parametrize("slow", [False, True], ids=["fits", "too_dear"])
+def test_train_nerf_draws_its_picture_before_training_only_when_it_fits(compose, tmp_path, monkeypatch, capsys, slow):
+    # the picture is priced on a part of its rays first: a part that says a whole one would take at
+    # least 0.05 s / 1e-5 = 5000 s does not fit 590 s, so no picture; its price is the loop's first
+    import time
+
+    from l3d_app.app import run_task
+    from l3d_app.tasks import train_nerf as task
+
+    seen = {}
+
+    def fake_train(ctx, trainable, step_fn, spec, eval_fn=None, budget=None, after_step=None):
+        seen["price"], seen["pictures"] = budget.eval_price, set(trainable.extra["before_after"].pictures)
+        raise _Reserved
+    if slow:
+        monkeypatch.setattr(task, "render_part", lambda *a, **k: (time.sleep(0.05), 1e-5)[1])
+    monkeypatch.setattr(task, "train", fake_train)
+    with pytest.raises(_Reserved):
+        run_task(compose("task=train_nerf", "data.image_size=16", "data.n_train=4", "data.n_val=1", "data.n_test=1",
+                         "time_budget=590", "tensorboard=false"), out_dir=tmp_path)
+    err = capsys.readouterr().err
+    if slow:
+        assert seen["pictures"] == set() and seen["price"] >= 5000.0
+        assert "before_after: the picture before training would take about" in err and "not drawn" in err
+    else:
+        assert seen["pictures"] == {"before"} and seen["price"] < 590.0 and "not drawn" not in err
+
+
+def test_a_part_of_a_validation_is_a_spread_share_of_its_rays():
+    from l3d_app.geometry.cameras import look_at_cameras
+    from l3d_app.geometry.rays import camera_rays
+    from l3d_app.render.evaluation import render_part
+
+    cams = look_at_cameras(3.0, torch.tensor([10.0, 20.0]), torch.tensor([0.0, 90.0]), 50.0, 40)   # 2 views, 40 x 40
+    got = []
+    share = render_part(lambda o, d: got.append((o, d)), cams, share=1.0 / 16, most=16384)
+    assert len(got) == 1 and got[0][0].shape == (200, 3) and share == 200 / 3200
+    o, d = camera_rays(cams, normalize=True)
+    # the first pixel of the first view and the last of the last: spread over every view
+    assert torch.equal(got[0][1][0], d[0, 0, 0]) and torch.equal(got[0][1][-1], d[1, -1, -1])
+    assert torch.equal(got[0][0][-1], o[1, -1, -1])
+    assert render_part(lambda o, d: got.append(o), cams, share=0.5, most=100) == 100 / 3200      # at most ``most``
+
+
+def test_a_price_from_before_training_does_not_stop_the_loop_before_it_is_measured_on_a_trained_model(tmp_path):
+    # steps cost 10 s; the task timed the untrained model's validation before training (50 s: eval_price,
+    # the clock starts at 50 s); validations every 200 steps, so the price is untrained until step
+    # max(1, 200 // 5) = 40; 5 evaluations' worth follow the loop; budget 660 s. At that price one more
+    # step passes the budget first after step 30 (350 + 10 + 300 >= 660), where stopping at once would
+    # still keep it (350 + 300 < 660): a stop there would rest on one reading of the untrained model.
+    # The loop trains on to step 40 (those 10 steps fit: 450 < 660) and validates there: the trained
+    # model renders in 5 s (455 + 10 + 30 < 660) -> on, to 10 k + 55 + 10 + 30 >= 660 at k = 57,
+    # whose price (17 steps old, confirmed at 40) stands: stop, the final validation at 57.
+    ctx, trainable, step_fn, eval_fn, seen = _priced_before_training(
+        tmp_path, 660.0, lambda s, before: 50.0 if s < 40 else 5.0)
+    result = train(ctx, trainable, step_fn, LoopSpec(1000, eval_every=200), eval_fn,
+                   TimeBudget.of(ctx, evals_after=5.0, eval_price=50.0))
+    assert result.budget_stop and result.step == 57
+    assert seen["steps"] == [40, 57]

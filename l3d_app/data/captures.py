@@ -117,14 +117,15 @@ def scene_box(points: Optional[torch.Tensor], camera_radius: float, percentile: 
 
 
 def load_images(files: Sequence[Path], sizes: Sequence[Tuple[int, int]], intrinsics: np.ndarray,
-                dists: np.ndarray, downscale: int, bg: torch.Tensor, group: Sequence[int], source: str
-                ) -> Tuple[torch.Tensor, np.ndarray]:
+                dists: np.ndarray, downscale: int, bg: torch.Tensor, group: Sequence[int], source: str,
+                image_size: int = 0) -> Tuple[torch.Tensor, np.ndarray]:
     """Read, undistort (once) and downscale the images.
 
     Args:
         files: N image paths. sizes: N (W, H) the poses' intrinsics refer to.
         intrinsics: (N, 4) fx, fy, cx, cy in pixels at ``sizes``; dists: (N, 6).
         downscale: integer factor. group: N camera ids (images of one camera must share a size).
+        image_size: long side (px) the images are then resized to when longer (:func:`resize_long_side`; 0: off).
     Returns:
         (N, H, W, 3) float images and (N, 4) intrinsics at the returned size.
     """
@@ -144,13 +145,30 @@ def load_images(files: Sequence[Path], sizes: Sequence[Tuple[int, int]], intrins
             img, _ = undistort_image(img, *K[i], dists[i])
         if downscale > 1:
             img = _to_float_rgb_pool(img, downscale)
+        K[i] /= float(downscale)
+        if int(image_size) > 0:
+            img, (sx, sy) = resize_long_side(img, int(image_size))
+            K[i] *= (sx, sy, sx, sy)
         out.append(img)
-    K /= float(downscale)
     shapes = {tuple(im.shape) for im in out}
     if len(shapes) != 1:
         raise UserError(f"{source}: images have different sizes {sorted(s[:2] for s in shapes)}; "
                         f"one size per dataset is supported")
     return torch.stack(out), K
+
+
+def resize_long_side(img: torch.Tensor, size: int) -> Tuple[torch.Tensor, Tuple[float, float]]:
+    """``img`` (H, W, 3) float resized so that its long side is ``size`` px when it is longer
+    (antialiased bilinear, pixel centres at +0.5); returns it and the (x, y) factors new / old
+    size, by which pixel coordinates and intrinsics scale. Images not longer are returned as they are."""
+    h, w = img.shape[:2]
+    if max(h, w) <= int(size):
+        return img, (1.0, 1.0)
+    s = int(size) / float(max(h, w))
+    nh, nw = max(1, round(h * s)), max(1, round(w * s))
+    out = torch.nn.functional.interpolate(img.permute(2, 0, 1)[None], size=(nh, nw), mode="bilinear",
+                                          align_corners=False, antialias=True)
+    return out[0].permute(1, 2, 0).clamp(0, 1).contiguous(), (nw / float(w), nh / float(h))
 
 
 def _to_float_rgb_pool(img: torch.Tensor, s: int) -> torch.Tensor:

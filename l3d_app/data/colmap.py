@@ -6,7 +6,8 @@ Camera models PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV; distorted 
 undistorted once at load (:func:`~l3d_app.geometry.distortion.undistort_image`, same
 intrinsics), so the dataset's cameras are pinhole. ``images=images_2`` reads a pre-downscaled
 folder (intrinsics scaled by the actual image size), ``downscale`` shrinks further by an
-integer factor. Splits, normalisation, scene box and background: :mod:`l3d_app.data.captures`.
+integer factor, and ``image_size`` > 0 resizes the long side to that many pixels (intrinsics scaled by
+the exact factor). Splits, normalisation, scene box and background: :mod:`l3d_app.data.captures`.
 The sparse points (normalised) and their colours are the dataset's initial ``points`` /
 ``point_colors``; up is the cameras' mean up vector.
 """
@@ -31,9 +32,10 @@ from l3d_app.runtime.paths import resolve_path
 def colmap(root: str = None, images: str = "images", sparse: str = "sparse/0", downscale: int = 1,
            test_every: int = 8, val_every: int = 8, normalize: bool = True, camera_radius: float = 3.0,
            box_percentile: float = 2.0, box_margin: float = 0.1, background="auto", max_views: int = 0,
-           device=None) -> MultiViewData:
+           image_size: int = 0, device=None) -> MultiViewData:
     """A COLMAP folder (see the module docstring). ``max_views`` > 0 keeps the first views by
-    name (quick runs; splits are taken after)."""
+    name (quick runs; splits are taken after); ``image_size`` > 0: long side (px) the images are
+    resized to after ``downscale`` when longer."""
     if root is None or not str(root).strip() or str(root) == "???":
         raise UserError("data=colmap needs a folder: add data.root=DIR (with images/ and sparse/0/)")
     folder = resolve_path(str(root))
@@ -41,6 +43,8 @@ def colmap(root: str = None, images: str = "images", sparse: str = "sparse/0", d
         raise UserError(f"colmap data folder not found: {folder}")
     if int(downscale) < 1:
         raise UserError(f"downscale must be an integer >= 1, got {downscale}")
+    if int(image_size) < 0:
+        raise UserError(f"image_size must be a long side in pixels >= 0 (0: as stored), got {image_size}")
     sparse_dir = folder / sparse
     model = read_model(sparse_dir)
     if len(model.names) == 0:
@@ -69,7 +73,7 @@ def colmap(root: str = None, images: str = "images", sparse: str = "sparse/0", d
     composite = background_rgb("white") if isinstance(background, str) and background == "auto" \
         else background_rgb(background)
     imgs, K = load_images(files, sizes, np.array(intr), np.array(dists), int(downscale), composite,
-                          cam_ids.tolist(), str(folder / images))
+                          cam_ids.tolist(), str(folder / images), int(image_size))
     pts = torch.from_numpy(model.points.copy()) if len(model.points) else None
     cols = torch.from_numpy(model.colors.astype(np.float32) / 255.0) if pts is not None else None
     train, val, test = split_by_name(names, int(test_every), int(val_every))

@@ -4,7 +4,10 @@
 * :func:`initial_splats`: the data's own points (``data.points``; ``init_points`` > 0 keeps a seeded random
   subset of that many, as the course subsamples its cloud) or ``n_init`` points drawn in its scene box, coloured by the training views (median of the pixels each projects to), the data's
   point colours or grey; scales from the 3 nearest neighbours, shrunk until the splats cover a
-  pixel at most ``max_coverage`` deep (:mod:`~l3d_app.render.gaussians.coverage`). With
+  pixel at most ``max_coverage`` deep (:mod:`~l3d_app.render.gaussians.coverage`); for 3D splats of
+  a photo capture (the data's points, its background unknown: walls and floor are scene) capped per
+  splat instead, with splats for the view cells left uncovered
+  (:func:`~l3d_app.models.gaussian_start.cover_views`). With
   ``surfels`` the rotations are uniformly random (the normals of the disks) and the third scale
   is a thickness of :data:`SURFEL_THICKNESS` x the first (never rendered: it keeps the
   strategies' 3D operations, split sampling and noise, inside the disk).
@@ -27,6 +30,7 @@ import torch
 
 from l3d_app.errors import UserError
 from l3d_app.metrics.image import psnr, ssim
+from l3d_app.models.gaussian_start import cover_views
 from l3d_app.models.gaussians import GaussianModel, colors_from_views, init_from_points
 from l3d_app.render.gaussians.coverage import shrink_to_coverage
 from l3d_app.render.gaussians.panels import colorize_depth, error_map, side_by_side
@@ -73,11 +77,14 @@ def initial_splats(raw, data, generator: Optional[torch.Generator], n_init: int,
         q = randn((model.num, 4), generator, points.device)
         model.quats.data = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         model.log_scales.data[:, 2] = model.log_scales.data[:, 0] + math.log(SURFEL_THICKNESS)
-    if float(max_coverage) > 0:          # bounded start-up cost
+    if float(max_coverage) > 0:            # bounded start-up cost (0: the scales as initialised)
         views = data.train[torch.linspace(0, len(data.train) - 1, min(16, len(data.train))).long()]
-        model.log_scales.data = shrink_to_coverage(model.means, model.log_scales, model.quats,
-                                                   torch.sigmoid(model.opacity_logits), data.cameras[views],
-                                                   float(max_coverage))
+        if not surfels and getattr(raw, "points", None) is not None and not data.background_known:  # a photo capture
+            model = cover_views(model, data.images[views], data.cameras[views], float(max_coverage))
+        else:
+            model.log_scales.data = shrink_to_coverage(model.means, model.log_scales, model.quats,
+                                                       torch.sigmoid(model.opacity_logits), data.cameras[views],
+                                                       float(max_coverage))
     return model
 
 

@@ -1,7 +1,8 @@
 """Evaluation views of a field: render them, score them, make one picture of them.
 
 :func:`render_views` renders cameras through any ``render_fn(origins, dirs) -> {"color",
-"depth", "opacity"}`` in chunks (optionally ``supersample``^2 rays per pixel, averaged);
+"depth", "opacity"}`` in chunks (optionally ``supersample``^2 rays per pixel, averaged), and
+:func:`render_part` a spread share of their pixels, to time it;
 :func:`evaluation_picture` is the picture every evaluation logs
 (:func:`l3d_app.pipelines.views.evaluate_views` adds the scores):
 one row per view, ``prediction | truth | |error| (x4, clamped) | depth`` (depth: white near,
@@ -36,6 +37,19 @@ def render_views(render_fn: RenderFn, cameras: Cameras, chunk: int = 8192, super
         return {k: v.mean(dim=3) for k, v in render_rays_chunked(fn, o, d, int(chunk)).items()}
     o, d = camera_rays(cameras, normalize=True)
     return render_rays_chunked(fn, o, d, int(chunk))
+
+
+@torch.no_grad()
+def render_part(render_fn: RenderFn, cameras: Cameras, share: float = 1.0 / 16, most: int = 16384) -> float:
+    """Render one call of rays through pixels spread evenly over all of ``cameras``' pixels: a
+    ``share`` of them, at most ``most``; returns the share rendered (a cheap timing of
+    :func:`render_views`: seconds / share)."""
+    o, d = camera_rays(cameras, normalize=True)
+    total = o.shape[0] * o.shape[1] * o.shape[2]
+    n = max(1, min(int(most), int(round(float(share) * total)), total))
+    idx = torch.linspace(0, total - 1, n, device=o.device).round().long()
+    render_fn(o.reshape(-1, 3)[idx], d.reshape(-1, 3)[idx])
+    return n / float(total)
 
 
 def depth_picture(depth: torch.Tensor, opacity: torch.Tensor) -> torch.Tensor:

@@ -13,13 +13,16 @@ on any machine and image size:
   follows the model: a fuzzy surface renders slower than a sharp one; splats grow), times
   ``1 + evals_after``, plus ``reserve`` seconds;
 * a validation's price is known before the first step: a task's own timed validation
-  (``eval_price``, e.g. its picture before training), a resumed run's saved price, or one
-  validation the loop runs before its first step;
+  (``eval_price``, e.g. its picture before training) or a timed part of one
+  (:meth:`TimeBudget.price_from_part`), a resumed run's saved price, or one validation the loop
+  runs before its first step; a task's picture before training is drawn only when it fits
+  (:meth:`TimeBudget.fits_before_training`);
 * a stop rests on a price measured twice: before stopping, the loop validates again (once per
   validation, or once the price is ``max(1, eval_every // 5)`` steps old); at the same step the
   cheaper timing counts (a stall only adds time), later the new one. A price measured on a model
-  trained fewer than that many steps, which loses the budget even if the loop stops at once,
-  does not stop it before that step (an untrained model's rendering says little of a trained one's);
+  trained fewer than that many steps does not stop the loop before that step while those steps
+  and ``reserve`` fit (an untrained model's rendering says little of a trained one's, and one
+  timing of it is one reading of a shared machine): the loop trains on and validates there;
 * a :class:`~l3d_app.runtime.horizon.Horizon` (``horizon=``) is kept at the step the budget lets
   the loop reach, so schedules that read it end with the run;
 * a stage before training gets a deadline (:meth:`TimeBudget.stage_deadline`), the gifs after it
@@ -135,6 +138,21 @@ class TimeBudget:
         out = fn()
         self.eval_price = self.clock() - t0
         return out
+
+    def price_from_part(self, fn: Callable[[], float]) -> float:
+        """Time ``fn``, which does a part of one validation's work and returns that part's share in
+        (0, 1]; the seconds over the share are the loop's first price of a validation
+        (``eval_price``, until a whole one is timed), returned."""
+        t0 = self.clock()
+        share = float(fn())
+        self.eval_price = max(self.clock() - t0, 0.0) / max(share, 1e-9)
+        return self.eval_price
+
+    def fits_before_training(self, seconds: float) -> bool:
+        """Whether a stage of ``seconds`` before training ends by :meth:`stage_deadline` with the final
+        work priced at ``seconds`` as one validation (a third of the budget at most, half of what the
+        final work leaves); True without a budget."""
+        return self.stage_deadline(float(seconds), minimum=float(seconds)) is not None
 
     # ------------------------------------------------------------------ before and after training
     def seconds_left(self) -> Optional[float]:
@@ -296,15 +314,13 @@ class TimeBudget:
 
     def _untrained_price_says_lost(self, done: int, last_eval: Optional[int]) -> bool:
         """Whether a stop at ``done`` waits: the price was measured on a model trained fewer than
-        ``max(1, eval_every // 5)`` steps, the loop has not trained that many yet, stopping now would
-        pass the budget at that price, and those steps and ``reserve`` still fit."""
+        ``max(1, eval_every // 5)`` steps, the loop has not trained that many yet, and those steps
+        and ``reserve`` still fit."""
         if not self.has_eval or self.seconds <= 0:
             return False
         early = max(1, int(self.eval_every or 0) // 5)
         priced_at = last_eval if last_eval is not None else self.start
         if priced_at >= early or done >= early:
             return False
-        elapsed = self.clock()
         steps_left = (early - done) * self.train_seconds / max(1, self.steps)
-        return (elapsed + self.after_loop_seconds(True) >= self.seconds
-                and elapsed + steps_left + self.reserve < self.seconds)
+        return self.clock() + steps_left + self.reserve < self.seconds

@@ -3,7 +3,10 @@
 Initial splats: the dataset's own points (``data.points``, e.g. the truck's
 ``points_10000.npy``) when it carries them, else ``n_init`` points drawn uniformly in its
 scene box; colours (``init_colors``): ``views`` = median of the training pixels each point
-projects to, ``points`` = the dataset's ``point_colors``, ``grey``. Each step renders one
+projects to, ``points`` = the dataset's ``point_colors``, ``grey``. Scales: the neighbour distance,
+shrunk by one factor to ``init_max_coverage``; a photo capture's (points, background unknown: walls and
+floor are scene) capped per splat instead, and the view cells they leave uncovered get splats of their
+own (:func:`~l3d_app.models.gaussian_start.cover_views`). Each step renders one
 random training view and minimises ``L1 + ssim_lambda (1 - SSIM)`` (+ the strategy's
 regulariser) with Adam (per-parameter rates as in 3DGS; the means' rate is scaled by the
 scene extent and decays exponentially, a LambdaLR the shared loop steps). The SH degree

@@ -12,7 +12,8 @@ a ``pred | truth | error | depth`` picture in TensorBoard); the TEST views are r
 after training (``psnr``, ``ssim`` in metrics.json; ``val_*`` the last validation).
 ``time_budget`` > 0: wall seconds for the whole task; the task declares what follows training to
 the run's :class:`~l3d_app.runtime.budget.TimeBudget` (the test views in validations, the mesh with
-``extract_mesh=true``, ``reserve`` seconds), which prices it; the gif comes last with the frames that
+``extract_mesh=true``, ``reserve`` seconds), which prices it; ``before_after.png`` is drawn when the picture
+before training, priced on a spread part of its rays, fits the budget; the gif comes last with the frames that
 still fit (:func:`~l3d_app.render.previews.write_turntables`). Outputs: ``turntable.gif`` (colour |
 depth, orbiting the data's up axis), ``test_views.png``, ``metrics.json``; ``extract_mesh=true`` adds
 ``mesh.<fmt>`` of
@@ -22,6 +23,7 @@ training camera sees; the whole level set in ``mesh_uncut.ply``).
 
 from __future__ import annotations
 
+import sys
 import time
 from typing import Dict
 
@@ -31,6 +33,7 @@ from l3d_app.geometry.rays import camera_rays
 from l3d_app.models.background import background_parameter
 from l3d_app.pipelines.views import BeforeAfter, evaluate_views
 from l3d_app.registry import DATASETS, MODELS, SAMPLERS, TASKS
+from l3d_app.render.evaluation import render_part
 from l3d_app.render.field_mesh import extract_mesh, save_field_mesh, seconds_per_grid_point
 from l3d_app.render.mesh.visibility import cull_to_training_views
 from l3d_app.render.turntable import color_depth_frames
@@ -110,7 +113,16 @@ def train_nerf(cfg, ctx) -> dict:
     before_after = BeforeAfter()
     trainable.extra["before_after"] = before_after      # checkpointed: a resumed run keeps its "before"
     if len(val) and bool(cfg.before_after) and not (bool(cfg.resume) and ctx.path("checkpoint.pt").exists()):
-        budget.time_validation(lambda: before_after.before(ctx, lambda: evaluate(val)))   # the loop's first price
+        # priced on a part first: the untrained field skips no sample, and a picture that does not fit is not drawn
+        price = budget.price_from_part(lambda: render_part(render_fn, data.cameras[val.to(ctx.device)],
+                                                           most=int(cfg.chunk)))
+        if budget.fits_before_training(price):
+            budget.time_validation(lambda: before_after.before(ctx, lambda: evaluate(val)))   # the loop's first price
+        else:
+            note = (f"before_after: the picture before training would take about {price:.0f} s of "
+                    f"time_budget={budget.seconds:g} s: not drawn")
+            print(f"l3d_app: note: {note}", file=sys.stderr)
+            ctx.logger.text("train/budget", note)
 
     def eval_fn(step: int) -> Dict[str, float]:
         sampler.update(step, model, ctx.generator)
