@@ -53,7 +53,7 @@ def compose():
 
 @pytest.fixture(scope="session")
 def data_cache(tmp_path_factory):
-    """One cache folder for the session's built-in datasets (each file keyed by the dataset's
+    """One cache folder for the test run's built-in datasets (each file keyed by the dataset's
     parameters): a scene is rendered once for every test that asks for the same one."""
     return tmp_path_factory.mktemp("data_cache")
 
