@@ -29,17 +29,14 @@ validation split is ``val_fraction`` of the training objects (per class, ``val_s
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
-import os
-from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
-from l3d_app.data.point_sets import PointCloudData, PointSplit
+from l3d_app.data.point_cache import cached_point_sets, class_block_splits
+from l3d_app.data.point_sets import PointCloudData
 from l3d_app.errors import UserError
 from l3d_app.geometry import primitives as prim
 from l3d_app.geometry.mesh import Mesh
@@ -47,7 +44,6 @@ from l3d_app.geometry.sampling import sample_surface
 from l3d_app.geometry.transforms import axis_rotation
 from l3d_app.registry import DATASETS
 from l3d_app.runtime.config_values import config_words
-from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.progress import progress
 
 CLASS_NAMES = ("chair", "vase", "lamp")
@@ -100,6 +96,18 @@ def _box(center, size) -> Mesh:
 def _cyl(center, radius, height, n: int = 16, rotation=None) -> Mesh:
     mesh = prim.cylinder(float(radius), float(height), n)
     return prim.transformed(mesh, rotation=rotation, translation=[float(c) for c in center])
+
+
+def arm_rests(rng: np.random.Generator, w: float, d: float, h: float, label: int) -> List[Part]:
+    """A chair's arms, each part labelled ``label``: on each side of a ``w`` x ``d`` seat whose top is at
+    height ``h``, a rest (height and width drawn from ``rng``) and a support beneath it."""
+    ah, aw = rng.uniform(0.2, 0.32), rng.uniform(0.06, 0.1)
+    parts: List[Part] = []
+    for sx in (-1, 1):
+        x = sx * (w / 2 + aw / 2)
+        parts.append((_box((x, h + ah, 0.0), (aw, 0.05, d * 0.85)), label))
+        parts.append((_box((x, h + ah / 2, d * 0.3), (aw * 0.6, ah, aw * 0.6)), label))
+    return parts
 
 
 def _chair(rng: np.random.Generator) -> List[Part]:
@@ -155,11 +163,7 @@ def _chair(rng: np.random.Generator) -> List[Part]:
     for piece in pieces:
         parts.append((prim.transformed(piece, rotation=rot, translation=(0.0, float(h), float(back_z))), BACK))
     if rng.random() < 0.4:  # arms: a rest and a support on each side
-        ah, aw = rng.uniform(0.2, 0.32), rng.uniform(0.06, 0.1)
-        for sx in (-1, 1):
-            x = sx * (w / 2 + aw / 2)
-            parts.append((_box((x, h + ah, 0.0), (aw, 0.05, d * 0.85)), ARMS))
-            parts.append((_box((x, h + ah / 2, d * 0.3), (aw * 0.6, ah, aw * 0.6)), ARMS))
+        parts += arm_rests(rng, w, d, h, ARMS)
     return parts
 
 
@@ -287,11 +291,6 @@ def generate(classes: Sequence[str], per_class: int, num_points: int, seed: int,
     return pts, labels, parts
 
 
-def default_cache_dir() -> Path:
-    """``$L3D_CACHE`` or ``~/.cache/l3d_app``."""
-    return Path(os.environ.get("L3D_CACHE", Path.home() / ".cache" / "l3d_app"))
-
-
 @DATASETS.register("shape_parts")
 def shape_parts(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 200,
                 test_per_class: int = 50, num_points: int = 10000, seed: int = 0,
@@ -304,7 +303,7 @@ def shape_parts(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 200
         train_per_class / test_per_class: objects per class in each split.
         num_points: P, surface points per object (the course uses 10,000).
         seed: generation seed (fixes shapes, samples and the split).
-        cache_dir: cache folder (None: :func:`default_cache_dir`).
+        cache_dir: cache folder (None: :func:`~l3d_app.data.point_cache.default_cache_dir`).
         val_fraction / val_seed: the validation split carved from the training objects
             (stratified by class; see :meth:`PointCloudData.with_val`).
         kind, device: accepted for a uniform data-source interface; both label kinds are
@@ -320,25 +319,12 @@ def shape_parts(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 200
             raise UserError(f"data.{key} must be >= 1, got {value}")
     n = int(train_per_class) + int(test_per_class)
     knobs = {"classes": classes, "n": n, "num_points": int(num_points), "seed": int(seed), "v": VERSION}
-    digest = hashlib.sha1(json.dumps(knobs, sort_keys=True).encode()).hexdigest()[:12]
-    folder = Path(cache_dir).expanduser() if cache_dir else default_cache_dir()
-    path = folder / f"shape_parts_{digest}.npz"
-    if path.exists():
-        with np.load(path) as z:
-            pts, labels, parts = z["points"], z["labels"], z["parts"]
-    else:
+
+    def make() -> dict:
         pts, labels, parts = generate(classes, n, int(num_points), int(seed))
-        try:
-            with atomic_path(path) as tmp:
-                with open(tmp, "wb") as f:
-                    np.savez(f, points=pts, labels=labels, parts=parts)
-        except OSError as err:  # read-only cache: keep going without it
-            print(f"l3d_app: warning: cannot cache shape_parts in {folder}: {err}")
-    within = np.arange(len(labels)) % n
-    splits = {}
-    for name, mask in (("train", within < int(train_per_class)), ("test", within >= int(train_per_class))):
-        splits[name] = PointSplit(torch.from_numpy(pts[mask]),
-                                  labels=torch.from_numpy(labels[mask].astype(np.int64)),
-                                  parts=torch.from_numpy(parts[mask].astype(np.int64)))
-    return PointCloudData(splits["train"], splits["test"], list(CLASS_NAMES), list(PART_NAMES),
+        return {"points": pts, "labels": labels, "parts": parts}
+
+    pts, labels, parts, path = cached_point_sets("shape_parts", knobs, cache_dir, make)
+    train, test = class_block_splits(pts, labels, parts, n, int(train_per_class))
+    return PointCloudData(train, test, list(CLASS_NAMES), list(PART_NAMES),
                           source=f"shape_parts:{path}").with_val(val_fraction, val_seed)

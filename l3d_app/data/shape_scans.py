@@ -30,17 +30,15 @@ Generated on first use and cached as ``shape_scans_<hash>.npz`` in ``cache_dir``
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
-from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
-from l3d_app.data.point_sets import PointCloudData, PointSplit
-from l3d_app.data.shape_parts import default_cache_dir, lathe
+from l3d_app.data.point_cache import cached_point_sets, class_block_splits
+from l3d_app.data.point_sets import PointCloudData
+from l3d_app.data.shape_parts import arm_rests, lathe
 from l3d_app.errors import UserError
 from l3d_app.geometry import primitives as prim
 from l3d_app.geometry.mesh import Mesh
@@ -49,7 +47,6 @@ from l3d_app.geometry.sampling import sample_surface
 from l3d_app.geometry.transforms import axis_rotation
 from l3d_app.registry import DATASETS
 from l3d_app.runtime.config_values import config_floats, config_words
-from l3d_app.runtime.files import atomic_path
 from l3d_app.runtime.progress import progress
 
 CLASS_NAMES = ("chair", "armchair", "stool", "table", "bench", "vase", "bottle", "cup", "mug", "bowl", "lamp",
@@ -100,11 +97,7 @@ def _seating(rng, back: bool, arms: bool, w: float, d: float, h: float) -> List[
                        for k in range(slats)]
         parts += [(prim.transformed(p, rotation=rot, translation=(0.0, h, -d / 2 + bt / 2)), BACK) for p in pieces]
     if arms:
-        ah, aw = rng.uniform(0.2, 0.32), rng.uniform(0.06, 0.1)
-        for sx in (-1, 1):
-            x = sx * (w / 2 + aw / 2)
-            parts.append((_box((x, h + ah, 0.0), (aw, 0.05, d * 0.85)), ARMS))
-            parts.append((_box((x, h + ah / 2, d * 0.3), (aw * 0.6, ah, aw * 0.6)), ARMS))
+        parts += arm_rests(rng, w, d, h, ARMS)
     return parts
 
 
@@ -306,25 +299,13 @@ def shape_scans(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 100
     knobs = {"classes": classes, "n": n, "num_points": int(num_points), "seed": int(seed), "elevation": [lo, hi],
              "noise": float(noise), "oversample": int(oversample), "grid": int(scan_grid),
              "tolerance": float(scan_tolerance), "v": VERSION}
-    digest = hashlib.sha1(json.dumps(knobs, sort_keys=True).encode()).hexdigest()[:12]
-    folder = Path(cache_dir).expanduser() if cache_dir else default_cache_dir()
-    path = folder / f"shape_scans_{digest}.npz"
-    if path.exists():
-        with np.load(path) as z:
-            pts, labels, parts = z["points"], z["labels"], z["parts"]
-    else:
+
+    def make() -> dict:
         pts, labels, parts, seen = generate(classes, n, int(num_points), int(seed), (lo, hi), float(noise),
                                             int(oversample), int(scan_grid), float(scan_tolerance))
-        try:
-            with atomic_path(path) as tmp:
-                with open(tmp, "wb") as f:
-                    np.savez(f, points=pts, labels=labels, parts=parts, seen=seen)
-        except OSError as err:  # read-only cache: keep going without it
-            print(f"l3d_app: warning: cannot cache shape_scans in {folder}: {err}")
-    within = np.arange(len(labels)) % n
-    splits = {}
-    for name, mask in (("train", within < int(train_per_class)), ("test", within >= int(train_per_class))):
-        splits[name] = PointSplit(torch.from_numpy(pts[mask]), labels=torch.from_numpy(labels[mask].astype(np.int64)),
-                                  parts=torch.from_numpy(parts[mask].astype(np.int64)))
-    return PointCloudData(splits["train"], splits["test"], list(CLASS_NAMES), list(PART_NAMES),
+        return {"points": pts, "labels": labels, "parts": parts, "seen": seen}
+
+    pts, labels, parts, path = cached_point_sets("shape_scans", knobs, cache_dir, make)
+    train, test = class_block_splits(pts, labels, parts, n, int(train_per_class))
+    return PointCloudData(train, test, list(CLASS_NAMES), list(PART_NAMES),
                           source=f"shape_scans:{path}").with_val(val_fraction, val_seed)
