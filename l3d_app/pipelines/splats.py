@@ -17,7 +17,10 @@
 * :class:`SplatSteps`: per step, the random training view, ``L1 + ssim_lambda (1 - SSIM)``, the
   strategy's regulariser and hooks (densification, :mod:`l3d_app.strategies`), the SH degree
   rising every ``sh_every`` steps, and the step's wall and CPU seconds.
+  :meth:`SplatSteps.after_step_hook` is the loop's ``after_step``: densification and its figures logged.
 * :func:`evaluate_views`: PSNR / SSIM of rendered views and a prediction | truth | error | depth panel.
+* :func:`write_splat_outputs`: the test figures logged once, ``test_views.gif``, ``progress.gif`` and
+  ``point_cloud.ply``.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 import torch
 
 from l3d_app.errors import UserError
+from l3d_app.geometry.gaussian_ply import save_gaussian_ply
 from l3d_app.metrics.image import psnr, ssim
 from l3d_app.models.gaussian_start import cover_views
 from l3d_app.models.gaussians import GaussianModel, colors_from_views, init_from_points
@@ -36,7 +40,9 @@ from l3d_app.render.gaussians.coverage import shrink_to_coverage
 from l3d_app.render.gaussians.panels import colorize_depth, error_map, side_by_side
 from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.lr_schedules import exponential
+from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.random import rand, randint, randn, randperm
+from l3d_app.runtime.training import log_test
 
 SURFEL_THICKNESS = 1e-3     # a surfel's third scale over its first (the disk's thickness for the strategies)
 INIT_COLORS = ("views", "points", "grey")
@@ -169,6 +175,16 @@ class SplatSteps:
         self.step_times.append((time.perf_counter() - self.info["t0"], time.process_time() - self.info["c0"]))
         return logs
 
+    def after_step_hook(self, iters: int, budget: TimeBudget, logger) -> Callable[[int], None]:
+        """The loop's ``after_step(step)``: :meth:`after_step` with the steps still to come (to ``iters``,
+        or fewer where the ``budget`` ends the run sooner, :meth:`steps_left`), the strategy's figures
+        logged as ``strategy/<name>`` at ``step + 1`` through ``logger.log_scalars``."""
+        def after_step(step: int) -> None:
+            logs = self.after_step(step, self.steps_left(step, int(iters), budget))
+            if logs:
+                logger.log_scalars({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
+        return after_step
+
     def step_cost(self, first: int = 100) -> Dict[str, float]:
         """Mean wall and CPU (process) seconds per step over the first ``first`` steps and the rest."""
         out = {}
@@ -190,3 +206,20 @@ def evaluate_views(render: Callable[[int], Dict[str, torch.Tensor]], views: Sequ
     depth = colorize_depth(outs[0][depth_key][0], *depth_range, mask=outs[0]["alpha"][0] > 0.5)
     panel = side_by_side([pred[0], target[0], error_map(pred[0], target[0]), depth])
     return pred, target, panel, {"psnr": float(psnr(pred, target)), "ssim": float(ssim(pred, target))}
+
+
+def write_splat_outputs(ctx, model: GaussianModel, step: int, pred: torch.Tensor, target: torch.Tensor,
+                        panel: torch.Tensor, test: Mapping[str, float], progress_frames: List[torch.Tensor],
+                        fps: float) -> Dict[str, float]:
+    """The end of a splat run: the test figures (rounded to 4 decimals) logged at ``step`` with the
+    ``panel``; ``test_views.gif`` (predictions (V, H, W, 3) beside their ``target``, at ``fps`` / 4),
+    ``progress.gif`` (the uint8 (H, W, 3) validation ``progress_frames``, at ``fps``; none without
+    frames) and ``point_cloud.ply`` (3DGS layout) in the run folder of ``ctx``. Returns the rounded
+    test figures."""
+    test = {k: round(v, 4) for k, v in test.items()}
+    log_test(ctx, test, step, images={"pred_truth_error_depth": panel})
+    save_gif(ctx.path("test_views.gif"), torch.cat([pred, target], 2), fps=float(fps) / 4)
+    if progress_frames:
+        save_gif(ctx.path("progress.gif"), torch.stack(progress_frames).float() / 255.0, fps=float(fps))
+    save_gaussian_ply(ctx.path("point_cloud.ply"), **model.tensors())
+    return test

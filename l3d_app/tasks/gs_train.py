@@ -33,17 +33,17 @@ from typing import List
 import torch
 
 from l3d_app.errors import UserError
-from l3d_app.geometry.gaussian_ply import save_gaussian_ply
 from l3d_app.models.background import background_parameter
 from l3d_app.pipelines.live_viewer import finish_viewer, gaussian_view, start_viewer
-from l3d_app.pipelines.splats import SplatSteps, evaluate_views, initial_splats, scene_extent, splat_optimizer
+from l3d_app.pipelines.splats import (SplatSteps, evaluate_views, initial_splats, scene_extent, splat_optimizer,
+                                     write_splat_outputs)
 from l3d_app.registry import DATASETS, STRATEGIES, TASKS
 from l3d_app.render.gaussians.panels import depth_range
 from l3d_app.render.gaussians.progress_grid import progress_grid
 from l3d_app.render.gaussians.rasterize import rasterize_gaussians
 from l3d_app.runtime.budget import TimeBudget
-from l3d_app.runtime.media import save_gif, to_uint8
-from l3d_app.runtime.training import Trainable, log_test, train
+from l3d_app.runtime.media import to_uint8
+from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import loop_spec, require_positive
 
 
@@ -87,12 +87,6 @@ def gs_train(cfg, ctx) -> dict:
         loss, l1 = steps.photometric(out["color"][0], i)
         return {"loss": steps.finish(loss, out, step), "l1": l1.detach(), "n_gaussians": torch.tensor(float(model.num))}
 
-    def after_step(step: int) -> None:
-        # steps after this one: to iters, or fewer where the budget (at the recent seconds per step) ends sooner
-        logs = steps.after_step(step, steps.steps_left(step, int(cfg.iters), budget))
-        if logs:
-            ctx.logger.log_scalars({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
-
     lo_hi = depth_range(data.cameras[int(data.val[0])].centers()[0], data.scene_box)
 
     def evaluate(views, deg):
@@ -107,15 +101,10 @@ def gs_train(cfg, ctx) -> dict:
 
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, loop_spec(cfg, "gs_train", log_every=int(cfg.log_every)), eval_fn,
-                       budget, after_step)
+                       budget, steps.after_step_hook(int(cfg.iters), budget, ctx.logger))
     finish_viewer(live, ctx, result.step)
-    pred, target, panel, test = evaluate(data.test, degree(result.step))
-    test = {k: round(v, 4) for k, v in test.items()}
-    log_test(ctx, test, result.step, images={"pred_truth_error_depth": panel})
-    save_gif(ctx.path("test_views.gif"), torch.cat([pred, target], 2), fps=float(cfg.fps) / 4)
-    if prog_frames:
-        save_gif(ctx.path("progress.gif"), torch.stack(prog_frames).float() / 255.0, fps=float(cfg.fps))
-    save_gaussian_ply(ctx.path("point_cloud.ply"), **model.tensors())
+    test = write_splat_outputs(ctx, model, result.step, *evaluate(data.test, degree(result.step)), prog_frames,
+                               float(cfg.fps))
     return {**test, **result.val_metrics(), **result.timing(), "n_gaussians": model.num,
             "background": [round(float(c), 4) for c in background["rgb"].detach().clamp(0, 1)],
             **steps.step_cost(), "history": result.history_rows()}

@@ -22,11 +22,11 @@ from typing import List
 import torch
 
 from l3d_app.errors import UserError
-from l3d_app.geometry.gaussian_ply import save_gaussian_ply
 from l3d_app.losses.surfel_regularizers import depth_distortion, depth_normal_consistency
 from l3d_app.models.background import background_parameter
 from l3d_app.pipelines.live_viewer import finish_viewer, gaussian_view, start_viewer
-from l3d_app.pipelines.splats import SplatSteps, evaluate_views, initial_splats, scene_extent, splat_optimizer
+from l3d_app.pipelines.splats import (SplatSteps, evaluate_views, initial_splats, scene_extent, splat_optimizer,
+                                     write_splat_outputs)
 from l3d_app.pipelines.surface_mesh import fused_mesh, truth_scores
 from l3d_app.registry import DATASETS, STRATEGIES, TASKS
 from l3d_app.render.field_mesh import save_field_mesh
@@ -34,8 +34,8 @@ from l3d_app.render.gaussians.panels import depth_range
 from l3d_app.render.gaussians.surfels import rasterize_surfels
 from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.config_values import config_words
-from l3d_app.runtime.media import save_gif, to_uint8
-from l3d_app.runtime.training import Trainable, log_test, train
+from l3d_app.runtime.media import to_uint8
+from l3d_app.runtime.training import Trainable, train
 from l3d_app.tasks.common import loop_spec, require_mesh_formats, require_nonnegative, require_positive
 
 
@@ -100,11 +100,6 @@ def surfels(cfg, ctx) -> dict:
     budget = TimeBudget.of(ctx, evals_after=(len(data.test) + len(data.train)) / len(data.val),
                            reserve=float(cfg.reserve) + float(cfg.mesh_reserve))
 
-    def after_step(step: int) -> None:
-        logs = steps.after_step(step, steps.steps_left(step, int(cfg.iters), budget))
-        if logs:
-            ctx.logger.log_scalars({f"strategy/{k}": v for k, v in logs.items()}, step + 1)
-
     lo_hi = depth_range(data.cameras[int(data.val[0])].centers()[0], data.scene_box)
 
     def evaluate(views, deg):
@@ -117,17 +112,10 @@ def surfels(cfg, ctx) -> dict:
 
     with ctx.stopwatch.stage("train"):
         result = train(ctx, trainable, step_fn, loop_spec(cfg, "surfels", log_every=int(cfg.log_every)), eval_fn,
-                       budget, after_step)
+                       budget, steps.after_step_hook(int(cfg.iters), budget, ctx.logger))
     finish_viewer(live, ctx, result.step)
     deg = steps.degree(result.step)
-    with torch.no_grad():
-        pred, target, panel, test = evaluate(data.test, deg)
-    test = {k: round(v, 4) for k, v in test.items()}
-    log_test(ctx, test, result.step, images={"pred_truth_error_depth": panel})
-    save_gif(ctx.path("test_views.gif"), torch.cat([pred, target], 2), fps=float(cfg.fps) / 4)
-    if prog_frames:
-        save_gif(ctx.path("progress.gif"), torch.stack(prog_frames).float() / 255.0, fps=float(cfg.fps))
-    save_gaussian_ply(ctx.path("point_cloud.ply"), **model.tensors())
+    test = write_splat_outputs(ctx, model, result.step, *evaluate(data.test, deg), prog_frames, float(cfg.fps))
     with ctx.stopwatch.stage("mesh"):
         mesh_stats = _mesh(cfg, ctx, data, lambda i: render(i, deg))
     return {**test, **result.val_metrics(), **result.timing(), "n_gaussians": model.num, **mesh_stats,
