@@ -39,8 +39,8 @@ import numpy as np
 
 BENCH = Path(__file__).resolve().parent
 sys.path.insert(0, str(BENCH))
-from make_scenes import (_bands, _checks, _colour, _fine, _place, _revolve, _solid, _stripes, _tube,  # noqa: E402
-                         look_at_c2w_opengl, write_float_colour_ply)
+from make_scenes import (_bands, _checks, _colour, _fine, _mitsuba, _place, _revolve, _solid, _stripes,  # noqa: E402
+                         _trimesh, _tube, look_at_c2w_opengl, sensor_dict, write_float_colour_ply)
 
 REPO = BENCH.parent
 DEFAULT_OUT = REPO / "outputs" / ".cache" / "captures"
@@ -121,12 +121,6 @@ def texture_label(rng, size: int = 256) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- scenes
-def _trimesh():
-    import trimesh
-
-    return trimesh
-
-
 def _room_parts(rng) -> List[dict]:
     """Floor (6 x 6 m), four walls 2.6 m high, the table (top 1.2 x 0.8 m at 0.75 m, four legs)."""
     return [
@@ -236,15 +230,6 @@ def walk_cameras(n: int, rng, target) -> np.ndarray:
     return np.stack(out)
 
 
-def _mitsuba():
-    try:
-        import mitsuba as mi
-    except ImportError as err:  # pragma: no cover - the bench extra
-        raise SystemExit("make_capture needs Mitsuba 3: pip install -e '.[bench]'") from err
-    mi.set_variant("scalar_rgb")
-    return mi
-
-
 def build_scene_dict(mi, parts: List[dict], folder: Path) -> dict:
     import imageio.v2 as imageio
 
@@ -278,12 +263,9 @@ def build_scene_dict(mi, parts: List[dict], folder: Path) -> dict:
 
 
 def sensor(mi, c2w_gl: np.ndarray, spp: int) -> dict:
-    to_world = c2w_gl @ np.diag([-1.0, 1.0, -1.0, 1.0])     # Mitsuba camera: +X left, +Y up, looks down +Z
-    return {"type": "perspective", "fov": FOV_X_DEG, "fov_axis": "x",
-            "to_world": mi.ScalarTransform4f(to_world.tolist()),
-            "film": {"type": "hdrfilm", "width": WIDTH, "height": HEIGHT, "pixel_format": "rgb",
-                     "rfilter": {"type": "gaussian"}},
-            "sampler": {"type": "multijitter", "sample_count": spp}}
+    """The capture's camera: WIDTH x HEIGHT RGB film, Gaussian pixel filter, multi-jittered samples."""
+    return sensor_dict(mi, c2w_gl, WIDTH, spp, height=HEIGHT, fov_x_deg=FOV_X_DEG, pixel_format="rgb",
+                       rfilter="gaussian", sampler="multijitter")
 
 
 def to_srgb8(img: np.ndarray, exposure: float) -> np.ndarray:
@@ -295,7 +277,7 @@ def to_srgb8(img: np.ndarray, exposure: float) -> np.ndarray:
 def make_capture(name: str, out: Path, spp: int, views: int) -> Path:
     import imageio.v2 as imageio
 
-    mi = _mitsuba()
+    mi = _mitsuba("make_capture")
     spec = SCENES[name]
     rng = np.random.default_rng(spec["seed"])
     folder = out / name

@@ -274,11 +274,12 @@ def write_float_colour_ply(path: Path, vertices: np.ndarray, faces: np.ndarray, 
         fh.write(f.tobytes())
 
 
-def _mitsuba():
+def _mitsuba(script: str = "make_scenes"):
+    """Mitsuba 3 in its ``scalar_rgb`` variant; without it, exit naming ``script`` and the extra to install."""
     try:
         import mitsuba as mi
     except ImportError as err:  # pragma: no cover - the bench extra
-        raise SystemExit("make_scenes needs Mitsuba 3: pip install -e '.[bench]'") from err
+        raise SystemExit(f"{script} needs Mitsuba 3: pip install -e '.[bench]'") from err
     mi.set_variant("scalar_rgb")
     return mi
 
@@ -309,14 +310,17 @@ def build_mitsuba_scene(parts_dir: Path, parts: List[Tuple[str, object]]) -> dic
     return scene
 
 
-def sensor_dict(mi, c2w_gl: np.ndarray, size: int, spp: int) -> dict:
-    """A Mitsuba perspective sensor for an OpenGL camera-to-world matrix (box pixel filter)."""
+def sensor_dict(mi, c2w_gl: np.ndarray, size: int, spp: int, *, height: int = 0, fov_x_deg: float = FOV_X_DEG,
+                pixel_format: str = "rgba", rfilter: str = "box", sampler: str = "independent") -> dict:
+    """A Mitsuba perspective sensor for an OpenGL camera-to-world matrix: a ``size`` x ``height`` film
+    (``height`` 0: square) of ``pixel_format``, horizontal field of view ``fov_x_deg`` degrees,
+    ``rfilter`` pixel filter and ``sampler`` at ``spp`` samples per pixel."""
     to_world = c2w_gl @ np.diag([-1.0, 1.0, -1.0, 1.0])   # Mitsuba camera: +X left, +Y up, looks down +Z
-    return {"type": "perspective", "fov": FOV_X_DEG, "fov_axis": "x",
+    return {"type": "perspective", "fov": fov_x_deg, "fov_axis": "x",
             "to_world": mi.ScalarTransform4f(to_world.tolist()),
-            "film": {"type": "hdrfilm", "width": size, "height": size, "pixel_format": "rgba",
-                     "rfilter": {"type": "box"}},
-            "sampler": {"type": "independent", "sample_count": spp}}
+            "film": {"type": "hdrfilm", "width": size, "height": height or size, "pixel_format": pixel_format,
+                     "rfilter": {"type": rfilter}},
+            "sampler": {"type": sampler, "sample_count": spp}}
 
 
 def render_views(mi, scene_dict: dict, c2ws: List[np.ndarray], size: int, spp: int, seed: int) -> List[np.ndarray]:
