@@ -26,7 +26,6 @@ Relative roots are resolved with :func:`~l3d_app.runtime.paths.resolve_path`.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Sequence
@@ -41,6 +40,7 @@ from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import from_opengl_c2w, from_pytorch3d, stack_cameras
 from l3d_app.registry import DATASETS
+from l3d_app.runtime.files import read_json
 from l3d_app.runtime.paths import resolve_path
 
 SPLITS = ("train", "val", "test")
@@ -107,10 +107,7 @@ def blender(root: str = None, background="white", downscale: int = 1,
                 splits[split] = torch.zeros(0, dtype=torch.long)
                 continue
             raise UserError(f"missing {path.name} in {folder}")
-        try:
-            meta = json.loads(path.read_text())
-        except json.JSONDecodeError as err:
-            raise UserError(f"{path} is not valid JSON: {err}") from err
+        meta = read_json(path)
         if not isinstance(meta, dict):
             raise UserError(f"{path}: expected a JSON object with camera_angle_x and frames, got {type(meta).__name__}")
         for key in ("camera_angle_x", "frames"):

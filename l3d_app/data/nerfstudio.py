@@ -19,7 +19,6 @@ every ``val_every``-th of the rest. Normalisation, box and background as
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Optional, Tuple
@@ -35,6 +34,7 @@ from l3d_app.geometry.pose_checks import check_finite, check_rigid_poses
 from l3d_app.errors import UserError
 from l3d_app.geometry.cameras import Cameras, from_opengl_c2w
 from l3d_app.registry import DATASETS
+from l3d_app.runtime.files import read_json
 from l3d_app.runtime.paths import resolve_path
 
 INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
@@ -74,10 +74,7 @@ def nerfstudio(root: str = None, transforms: str = "transforms.json", downscale:
         raise UserError(f"nerfstudio transforms file not found: {path}")
     if int(downscale) < 1:
         raise UserError(f"downscale must be an integer >= 1, got {downscale}")
-    try:
-        meta = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise UserError(f"{path} is not valid JSON: {err}") from err
+    meta = read_json(path)
     if not isinstance(meta, dict):
         raise UserError(f"{path} must hold a JSON object (with 'frames'), got a {type(meta).__name__}")
     frames = meta.get("frames")

@@ -20,6 +20,7 @@ from l3d_app.geometry.pose_checks import check_rigid_poses
 from l3d_app.geometry.transforms import euler_xyz
 from l3d_app.registry import CAMERA_PATHS
 from l3d_app.runtime.config_values import config_floats
+from l3d_app.runtime.files import read_json
 
 
 def cameras_up(cams: Cameras) -> torch.Tensor:
@@ -255,10 +256,7 @@ def read_camera_path(path) -> Cameras:
     path = Path(path)
     if not path.is_file():
         raise UserError(f"camera path file not found: {path}")
-    try:
-        meta = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise UserError(f"{path} is not valid JSON: {err}") from err
+    meta = read_json(path)
     frames = meta.get("camera_path") if isinstance(meta, dict) else None
     if not frames:
         raise UserError(f"{path}: no keyframes (camera_path is empty or missing)")

@@ -1,4 +1,4 @@
-"""Atomic file writing: write to a temporary name beside the target, then rename.
+"""Atomic file writing: write to a temporary name beside the target, then rename; and reading a user's JSON.
 
 A run that is interrupted or fails never leaves a half-written artefact under the final name.
 """
@@ -12,6 +12,8 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator, Mapping
+
+from l3d_app.errors import UserError
 
 
 @contextmanager
@@ -36,6 +38,15 @@ def write_json(path: os.PathLike, data: Mapping[str, Any]) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(_json_value(data), indent=2, sort_keys=True, allow_nan=False) + "\n")
     return Path(path)
+
+
+def read_json(path: os.PathLike) -> Any:
+    """The JSON value in the file at ``path``; text that is not JSON is a :class:`UserError`
+    ``"{path} is not valid JSON: ..."``."""
+    try:
+        return json.loads(Path(path).read_text())
+    except json.JSONDecodeError as err:
+        raise UserError(f"{path} is not valid JSON: {err}") from err
 
 
 def _json_value(value: Any) -> Any:
