@@ -1,10 +1,10 @@
 """Pieces shared by the fitting tasks (fit_vox, fit_point, fit_mesh): the target, the
-held-out val / test samples of its surface, the side-by-side turntable of fit and target, and the
-common knob checks."""
+held-out val / test samples of its surface, the Adam fit with its val / test evaluations, the
+side-by-side turntable of fit and target, and the common knob checks."""
 
 from __future__ import annotations
 
-from typing import Dict, Optional, Union
+from typing import Callable, Dict, Optional, Tuple, Union
 
 import torch
 
@@ -18,7 +18,8 @@ from l3d_app.render.previews import frames_within_budget
 from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.media import save_gif
 from l3d_app.runtime.random import held_out_seed
-from l3d_app.tasks.common import check_output_knobs, require_nonnegative, require_positive
+from l3d_app.runtime.training import Trainable, TrainResult, log_test, train
+from l3d_app.tasks.common import check_output_knobs, loop_spec, require_nonnegative, require_positive
 
 Shape = Union[Mesh, PointCloud, None]
 
@@ -49,6 +50,24 @@ def held_out_surface(mesh: Mesh, n: int, cfg, device) -> Dict[str, torch.Tensor]
     test = sample_points_on_mesh(mesh, n, gen_test).points
     other = sample_points_on_mesh(mesh, n, gen_test).points
     return {"val": sample_points_on_mesh(mesh, n, gen_val).points, "test": test, "test_other": other}
+
+
+def fit_and_test(cfg, ctx, task: str, name: str, holder: torch.nn.ParameterDict,
+                 step: Callable[[int], Dict[str, torch.Tensor]],
+                 evaluate_on: Callable[[str], Dict[str, float]]) -> Tuple[TrainResult, Dict[str, float]]:
+    """Adam over ``holder`` (checkpointed as ``name``) at ``lr``, cosine-decayed to ``lr_final`` over
+    ``iters``; the shared loop of ``task`` runs ``step`` and ``evaluate_on("val")`` every ``eval_every``
+    steps under a time budget that keeps one validation's worth for the test figures; then
+    ``evaluate_on("test")``, read once and logged. Returns the loop's result and the test figures."""
+    opt = torch.optim.Adam(holder.parameters(), lr=float(cfg.lr))
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=int(cfg.iters), eta_min=float(cfg.lr_final))
+    trainable = Trainable({name: holder}, opt, schedulers=[sched])
+    with ctx.stopwatch.stage("train"):
+        result = train(ctx, trainable, step, loop_spec(cfg, task), lambda _i: evaluate_on("val"),
+                       budget=TimeBudget.of(ctx).keep_renders(1))      # the test figures cost what a validation does
+    final = evaluate_on("test")
+    log_test(ctx, final, result.step)
+    return result, final
 
 
 def check_fit_knobs(cfg, *extra: str) -> None:

@@ -26,11 +26,8 @@ from l3d_app.losses.mesh_regularizers import edge_length, laplacian_smoothing, n
 from l3d_app.metrics.chamfer import chamfer_distance
 from l3d_app.metrics.fscore import fscore
 from l3d_app.registry import TASKS
-from l3d_app.runtime.budget import TimeBudget
-from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import loop_spec
-from l3d_app.tasks.fit_common import (check_fit_knobs, eval_generator, held_out_surface, load_target_mesh,
-                                      side_by_side_turntable)
+from l3d_app.tasks.fit_common import (check_fit_knobs, eval_generator, fit_and_test, held_out_surface,
+                                      load_target_mesh, side_by_side_turntable)
 
 
 @TASKS.register("fit_mesh")
@@ -46,9 +43,6 @@ def fit_mesh(cfg, ctx) -> dict:
     source = icosphere(int(cfg.ico_level), float(cfg.init_radius)).to(ctx.device)
     offsets = torch.nn.Parameter(torch.zeros_like(source.verts))
     holder = torch.nn.ParameterDict({"offsets": offsets})
-    opt = torch.optim.Adam(holder.parameters(), lr=float(cfg.lr))
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=int(cfg.iters), eta_min=float(cfg.lr_final))
-    trainable = Trainable({"mesh": holder}, opt, schedulers=[sched])
     weights = {k: float(cfg[k]) for k in ("w_chamfer", "w_smooth", "w_normal", "w_edge")}
     faces, s = source.faces, int(cfg.num_samples)
 
@@ -74,11 +68,7 @@ def fit_mesh(cfg, ctx) -> dict:
         truth = held_out[split]
         return {"chamfer": float(chamfer_distance(pts, truth)), **fscore(pts, truth, t)}
 
-    with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step, loop_spec(cfg, "fit_mesh"), lambda _i: evaluate_on("val"),
-                       budget=TimeBudget.of(ctx).keep_renders(1))      # the test figures cost what a validation does
-    final = evaluate_on("test")
-    log_test(ctx, final, result.step)
+    result, final = fit_and_test(cfg, ctx, "fit_mesh", "mesh", holder, step, evaluate_on)
     with torch.no_grad():
         out_mesh = source.with_verts((source.verts + holder["offsets"]).detach().clone())
     save_mesh(out_mesh, ctx.path("fit_mesh.obj"))

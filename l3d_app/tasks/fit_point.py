@@ -20,11 +20,9 @@ from l3d_app.geometry.sampling import sample_points_on_mesh
 from l3d_app.metrics.chamfer import chamfer_distance
 from l3d_app.metrics.fscore import fscore
 from l3d_app.registry import TASKS
-from l3d_app.runtime.budget import TimeBudget
 from l3d_app.runtime.random import rand, randn
-from l3d_app.runtime.training import Trainable, log_test, train
-from l3d_app.tasks.common import loop_spec
-from l3d_app.tasks.fit_common import check_fit_knobs, held_out_surface, load_target_mesh, side_by_side_turntable
+from l3d_app.tasks.fit_common import (check_fit_knobs, fit_and_test, held_out_surface, load_target_mesh,
+                                      side_by_side_turntable)
 
 
 def random_ball(n: int, radius: float, generator: torch.Generator, device=None) -> torch.Tensor:
@@ -46,9 +44,6 @@ def fit_point(cfg, ctx) -> dict:
 
     points = torch.nn.Parameter(random_ball(n, float(cfg.init_radius), ctx.generator, ctx.device))
     holder = torch.nn.ParameterDict({"points": points})
-    opt = torch.optim.Adam(holder.parameters(), lr=float(cfg.lr))
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=int(cfg.iters), eta_min=float(cfg.lr_final))
-    trainable = Trainable({"cloud": holder}, opt, schedulers=[sched])
 
     def step(_i):
         target = sample_points_on_mesh(target_mesh, n, ctx.generator).points
@@ -58,11 +53,7 @@ def fit_point(cfg, ctx) -> dict:
         pts, truth = holder["points"].detach(), held_out[split]
         return {"chamfer": float(chamfer_distance(pts, truth)), **fscore(pts, truth, t)}
 
-    with ctx.stopwatch.stage("train"):
-        result = train(ctx, trainable, step, loop_spec(cfg, "fit_point"), lambda _i: evaluate_on("val"),
-                       budget=TimeBudget.of(ctx).keep_renders(1))      # the test figures cost what a validation does
-    final = evaluate_on("test")
-    log_test(ctx, final, result.step)
+    result, final = fit_and_test(cfg, ctx, "fit_point", "cloud", holder, step, evaluate_on)
     with ctx.stopwatch.stage("render"):
         side_by_side_turntable(cfg, ctx, PointCloud(holder["points"].detach().clone()),
                                PointCloud(held_out["test"]), "fit_point.gif")
