@@ -62,13 +62,20 @@ def setup():
     return prior, x, emb, g
 
 
-def test_gradient_is_weighted_noise_residual(setup):
+def _sds_and_reference(setup, scale, t):
+    """``sds_loss`` at guidance ``scale`` and timesteps ``t`` with seeded noise, backpropagated into ``x``;
+    returns its output and the float64 reference gradient."""
     prior, x, emb, g = setup
-    t = torch.tensor([0, 10, 50, 99])
     noise = torch.randn(x.shape, generator=g)
-    out = sds_loss(prior, x, emb, guidance_scale=7.5, t=t, noise=noise)
+    out = sds_loss(prior, x, emb, guidance_scale=scale, t=t, noise=noise)
     out.loss.backward()
-    ref = reference_grad(prior, x, emb, 7.5, t, noise)
+    return out, reference_grad(prior, x, emb, scale, t, noise)
+
+
+def test_gradient_is_weighted_noise_residual(setup):
+    prior, x, _, _ = setup
+    t = torch.tensor([0, 10, 50, 99])
+    out, ref = _sds_and_reference(setup, 7.5, t)
     torch.testing.assert_close(x.grad.double(), ref, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(out.grad.double(), ref, rtol=1e-5, atol=1e-6)
     # loss value is 0.5 ||g||^2 and the prior's weights got no gradient
@@ -94,13 +101,9 @@ def test_guidance_scale_zero_is_unconditional_and_one_is_conditional(setup):
 
 
 def test_huge_guidance_scale_stays_finite_and_exact(setup):
-    prior, x, emb, g = setup
-    t = torch.tensor([1, 20, 60, 99])
-    noise = torch.randn(x.shape, generator=g)
-    out = sds_loss(prior, x, emb, guidance_scale=1e6, t=t, noise=noise)
-    out.loss.backward()
+    _, x, _, _ = setup
+    out, ref = _sds_and_reference(setup, 1e6, torch.tensor([1, 20, 60, 99]))     # ref ~1e6 (cond - uncond) w(t)
     assert out.finite and torch.isfinite(out.loss) and torch.isfinite(x.grad).all()
-    ref = reference_grad(prior, x, emb, 1e6, t, noise)             # ~1e6 (cond - uncond) w(t)
     assert float(ref.abs().max()) > 1e5
     torch.testing.assert_close(x.grad.double(), ref, rtol=1e-5, atol=1e-6 * float(ref.abs().max()))
     assert out.grad_norm > 1e5

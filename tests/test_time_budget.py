@@ -233,6 +233,16 @@ def _priced_before_training(tmp_path, budget, cost):
     return ctx, trainable, step_fn, eval_fn, seen
 
 
+def _priced_run(tmp_path, budget, eval_every, cost):
+    """The loop over :func:`_priced_before_training` (validations every ``eval_every`` steps, 5
+    evaluations' worth after the loop, the 50 s price from before training): its result and the steps
+    it validated at."""
+    ctx, trainable, step_fn, eval_fn, seen = _priced_before_training(tmp_path, budget, cost)
+    result = train(ctx, trainable, step_fn, LoopSpec(1000, eval_every=eval_every), eval_fn,
+                   TimeBudget.of(ctx, evals_after=5.0, eval_price=50.0))
+    return result, seen["steps"]
+
+
 @pytest.mark.parametrize("later_cost, stop_step, evals", [(5.0, 17, [10, 17]), (50.0, 10, [10])])
 def test_an_untrained_models_price_that_loses_the_budget_is_measured_again_after_training(
         tmp_path, later_cost, stop_step, evals):
@@ -245,12 +255,9 @@ def test_an_untrained_models_price_that_loses_the_budget_is_measured_again_after
     # k = 17, whose price (7 steps old, confirmed) stands: stop, the final validation at 17. A model that
     # stays that dear (50 s at step 10): 200 + 10 + 300 -> stop at 10, that validation the final one.
     # Stopping at step 1 would score the untrained model's test views.
-    ctx, trainable, step_fn, eval_fn, seen = _priced_before_training(
-        tmp_path, 260.0, lambda s, before: 50.0 if s < 10 else later_cost)
-    result = train(ctx, trainable, step_fn, LoopSpec(1000, eval_every=50), eval_fn,
-                   TimeBudget.of(ctx, evals_after=5.0, eval_price=50.0))
+    result, validated = _priced_run(tmp_path, 260.0, 50, lambda s, before: 50.0 if s < 10 else later_cost)
     assert result.budget_stop and result.step == stop_step
-    assert seen["steps"] == evals
+    assert validated == evals
 
 
 def test_a_price_from_before_training_is_measured_again_before_a_budget_stop(tmp_path):
@@ -259,12 +266,9 @@ def test_a_price_from_before_training_is_measured_again_before_a_budget_stop(tmp
     # wait). That price is 65 >= max(1, 100 // 5) = 20 steps old: validated again (5 s): 705 + 10 + 30 <
     # 1010 -> on, to 10 k + 55 + 10 + 30 >= 1010 at k = 92, where the step-65 price is 27 >= 20 steps old:
     # validated again (5 s): 980 + 40 -> stop. Stopping at 65 would trust the untrained model's price.
-    ctx, trainable, step_fn, eval_fn, seen = _priced_before_training(
-        tmp_path, 1010.0, lambda s, before: 50.0 if s < 20 else 5.0)
-    result = train(ctx, trainable, step_fn, LoopSpec(1000, eval_every=100), eval_fn,
-                   TimeBudget.of(ctx, evals_after=5.0, eval_price=50.0))
+    result, validated = _priced_run(tmp_path, 1010.0, 100, lambda s, before: 50.0 if s < 20 else 5.0)
     assert result.budget_stop and result.step == 92
-    assert seen["steps"] == [65, 92]
+    assert validated == [65, 92]
 
 
 class _Reserved(Exception):
@@ -345,9 +349,6 @@ def test_a_price_from_before_training_does_not_stop_the_loop_before_it_is_measur
     # The loop trains on to step 40 (those 10 steps fit: 450 < 660) and validates there: the trained
     # model renders in 5 s (455 + 10 + 30 < 660) -> on, to 10 k + 55 + 10 + 30 >= 660 at k = 57,
     # whose price (17 steps old, confirmed at 40) stands: stop, the final validation at 57.
-    ctx, trainable, step_fn, eval_fn, seen = _priced_before_training(
-        tmp_path, 660.0, lambda s, before: 50.0 if s < 40 else 5.0)
-    result = train(ctx, trainable, step_fn, LoopSpec(1000, eval_every=200), eval_fn,
-                   TimeBudget.of(ctx, evals_after=5.0, eval_price=50.0))
+    result, validated = _priced_run(tmp_path, 660.0, 200, lambda s, before: 50.0 if s < 40 else 5.0)
     assert result.budget_stop and result.step == 57
-    assert seen["steps"] == [40, 57]
+    assert validated == [40, 57]
