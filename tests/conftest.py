@@ -24,6 +24,8 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
 os.environ.setdefault("L3D_NO_PROGRESS", "1")
+if os.environ.get("PYTEST_XDIST_WORKER"):   # one worker per core: one torch thread each
+    torch.set_num_threads(1)
 
 
 def course_data(*parts: str) -> Path:
@@ -54,7 +56,12 @@ def compose():
 @pytest.fixture(scope="session")
 def data_cache(tmp_path_factory):
     """One cache folder for the test run's built-in datasets (each file keyed by the dataset's
-    parameters): a scene is rendered once for every test that asks for the same one."""
+    parameters, written atomically): a scene is rendered once for every test that asks for the
+    same one, and under pytest-xdist the workers share the folder (it sits beside their own)."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = tmp_path_factory.getbasetemp().parent / "data_cache"
+        shared.mkdir(exist_ok=True)
+        return shared
     return tmp_path_factory.mktemp("data_cache")
 
 
