@@ -24,6 +24,8 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
 os.environ.setdefault("L3D_NO_PROGRESS", "1")
+if os.environ.get("PYTEST_XDIST_WORKER"):   # one worker per core: one torch thread each
+    torch.set_num_threads(1)
 
 
 def course_data(*parts: str) -> Path:
@@ -54,7 +56,12 @@ def compose():
 @pytest.fixture(scope="session")
 def data_cache(tmp_path_factory):
     """One cache folder for the test run's built-in datasets (each file keyed by the dataset's
-    parameters): a scene is rendered once for every test that asks for the same one."""
+    parameters, written atomically): a scene is rendered once for every test that asks for the
+    same one, and under pytest-xdist the workers share the folder (it sits beside their own)."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = tmp_path_factory.getbasetemp().parent / "data_cache"
+        shared.mkdir(exist_ok=True)
+        return shared
     return tmp_path_factory.mktemp("data_cache")
 
 
@@ -101,7 +108,8 @@ def volsdf_run(tmp_path_factory, data_cache):
 @pytest.fixture(scope="session")
 def free_space_run(tmp_path_factory, data_cache):
     """One volsdf run with the free-space stage (tests/test_volsdf_free_space.py): the built-in scene at 64 px
-    (48 training views), the stage's 300 steps of 1024 rays (50000 of the 196608 training rays read off), then 30 steps of 256 rays whose only free-space
+    (48 training views), the stage's 300 steps of 1024 rays with a small radiance field (4 grid levels up to 64,
+    48 samples a ray; 50000 of the 196608 training rays read off), then 30 steps of 256 rays whose only free-space
     term is the ray term (weight 1, its ends as the stage left them) and no patch term. What each step handed
     the ray term is recorded: the batch's ray indices, their ends and the batch's mean opacity before them."""
     import json
@@ -118,7 +126,9 @@ def free_space_run(tmp_path_factory, data_cache):
                          "+stages.free_space.max_rays=50000", "losses.free_points.weight=0",
                          "losses.free_rays.weight=1",
                          "losses.free_rays.margin_beta=0", "losses.ncc.weight=0", "gif_frames=0", "mesh_resolution=16",
-                         "eval_points=500")
+                         "eval_points=500",
+                         "+stages.free_space.model={name:grid_field,n_levels:4,max_resolution:64,log2_hashmap_size:15}",
+                         "+stages.free_space.sampler={name:occupancy,n_samples:48,resolution:32}")
     drawn, calls = [], []
     real_call, real_opacity = LossTerms.__call__, free_space_losses.opacity_before
 
