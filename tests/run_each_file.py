@@ -22,7 +22,7 @@ def main(words: list[str]) -> int:
     failed = []
     for path in files:
         start = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", str(path)],
+        proc = subprocess.run([sys.executable, "-m", "pytest", "-n", "0", "-p", "no:cacheprovider", str(path)],
                               cwd=TESTS.parent, capture_output=True, text=True)
         took = time.perf_counter() - start
         lines = proc.stdout.strip().splitlines()
