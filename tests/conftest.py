@@ -72,6 +72,20 @@ def pytest_runtest_setup(item):
     torch.manual_seed(zlib.crc32(item.nodeid.encode()))
 
 
+LONGEST_FILES = ("test_volsdf_free_space.py", "test_app.py", "test_volsdf.py", "test_render_path.py",
+                 "test_viewer_browser.py", "test_course_surfaces.py", "test_learned_background.py", "test_nerf.py",
+                 "test_faults.py", "test_pointnet.py")
+"""The files with the longest end-to-end runs (15-75 s each on one core, ``--durations``)."""
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(session, config, items):
+    """Longest first: after the random shuffle, the tests of :data:`LONGEST_FILES` move ahead of the rest (each
+    group keeps its shuffled order), so that the xdist workers, which take a file at a time, do not end with one
+    of them running alone."""
+    items[:] = sorted(items, key=lambda item: item.path.name not in LONGEST_FILES)
+
+
 def pytest_terminal_summary(terminalreporter, config):
     """Print the random-order seed even under -q (pytest-randomly prints it only in the header)."""
     if config.pluginmanager.hasplugin("randomly"):
