@@ -75,7 +75,7 @@ def pytest_runtest_setup(item):
 LONGEST_FILES = ("test_volsdf_free_space.py", "test_app.py", "test_volsdf.py", "test_render_path.py",
                  "test_viewer_browser.py", "test_course_surfaces.py", "test_learned_background.py", "test_nerf.py",
                  "test_faults.py", "test_pointnet.py")
-"""The files with the longest end-to-end runs (15-75 s each on one core, ``--durations``)."""
+"""The files with the longest end-to-end runs (about 10-45 s each on one core in a ``--durations`` reading)."""
 
 
 @pytest.hookimpl(trylast=True)
