@@ -10,17 +10,18 @@ Classes (:data:`CLASS_NAMES`) and the part that separates the confusable ones::
     lamp      lamp base, straight stem, shade         desk_lamp = lamp with a bent stem
 
 Part labels (:data:`PART_NAMES`, one space for all classes): seat, back, legs, arms, top, body, neck,
-foot, handle, lamp_base, stem, shade.
+foot, handle, lamp_base, stem, shade, and background (what surrounds the object in a cluttered scan).
 
-Each object is assembled from primitive meshes (its own seed fixes every size and style), sampled by
-area (``oversample`` x ``num_points`` surface points, each with the part of its face), then scanned:
-a viewpoint at a random azimuth and an elevation in ``elevation`` degrees, and only the samples a
-scanner there sees are kept (:func:`l3d_app.geometry.partial_scan.visible_points`: orthographic
-z-buffer of ``scan_grid`` cells, depth tolerance ``scan_tolerance``). ``num_points`` of the visible
-samples are drawn (with repeats when fewer are visible), the cloud is centred (bounding box) and
-scaled so that its farthest point is at distance 1, and Gaussian noise of ``noise`` (in those units) is
-added to every coordinate. A mug seen from the side its handle is not on is a cup: some clouds are
-ambiguous by construction.
+Each object is assembled from primitive meshes (its own seed fixes every size and style) and scanned by
+:func:`l3d_app.data.scanner.scan_object`: a viewpoint at a random azimuth and an elevation in
+``elevation`` degrees, an orthographic z-buffer of ``scan_grid`` cells across the object (depth tolerance
+``scan_tolerance``) keeps what the scanner sees, ``num_points`` of it are drawn, centred, scaled to the
+unit ball and given Gaussian noise of ``noise`` (in those units). With probability ``clutter`` the object
+stands among clutter (:func:`surroundings`): a neighbour of a random class beside it and, seen from above,
+the floor; clutter in front hides the object, and what lies in the object's widened bounding box stays in
+the scan as background. With probability ``occlusion`` a disc in the scanner's image plane (radius uniform
+in ``occluder_radius``, at most 60% of the view) hides a further part. A mug seen from the side its handle
+is not on, or with its handle hidden, is a cup: some clouds are ambiguous by construction.
 
 Generated on first use and cached as ``shape_scans_<hash>.npz`` in ``cache_dir`` (default
 ``~/.cache/l3d_app``); the hash covers every generation knob. Object ``i`` of class ``c`` is seeded by
@@ -40,10 +41,9 @@ from l3d_app.data.point_cache import cached_point_sets, class_block_splits
 from l3d_app.data.point_sets import PointCloudData
 from l3d_app.data.shape_parts import arm_rests, lathe
 from l3d_app.errors import UserError
+from l3d_app.data.scanner import Part, occluded, scan_object  # noqa: F401  (occluded: part of this module's API)
 from l3d_app.geometry import primitives as prim
 from l3d_app.geometry.mesh import Mesh
-from l3d_app.geometry.partial_scan import view_direction, visible_points
-from l3d_app.geometry.sampling import sample_surface
 from l3d_app.geometry.transforms import axis_rotation
 from l3d_app.registry import DATASETS
 from l3d_app.runtime.config_values import config_floats, config_words
@@ -51,11 +51,10 @@ from l3d_app.runtime.progress import progress
 
 CLASS_NAMES = ("chair", "armchair", "stool", "table", "bench", "vase", "bottle", "cup", "mug", "bowl", "lamp",
                "desk_lamp")
-PART_NAMES = ("seat", "back", "legs", "arms", "top", "body", "neck", "foot", "handle", "lamp_base", "stem", "shade")
-SEAT, BACK, LEGS, ARMS, TOP, BODY, NECK, FOOT, HANDLE, LBASE, STEM, SHADE = range(12)
-VERSION = 1  # bump when the generators change (invalidates caches)
-
-Part = Tuple[Mesh, int]
+PART_NAMES = ("seat", "back", "legs", "arms", "top", "body", "neck", "foot", "handle", "lamp_base", "stem", "shade",
+              "background")
+SEAT, BACK, LEGS, ARMS, TOP, BODY, NECK, FOOT, HANDLE, LBASE, STEM, SHADE, BACKGROUND = range(13)
+VERSION = 2  # bump when the generators change (invalidates caches)
 
 
 def _box(center, size) -> Mesh:
@@ -226,33 +225,33 @@ GENERATORS: Dict[str, Callable[[np.random.Generator], List[Part]]] = {
     "desk_lamp": lambda rng: _lamp_parts(rng, True)}
 
 
-def scan_object(parts: List[Part], num_points: int, generator: torch.Generator, azimuth: float, elevation: float,
-                oversample: int = 8, grid: int = 24, tolerance: float = 0.08, noise: float = 0.01
-                ) -> Tuple[torch.Tensor, torch.Tensor, float]:
-    """A noisy single-view scan of the object made of ``parts`` (see the module docstring).
+def _footprint(parts: Sequence[Part]) -> Tuple[np.ndarray, float]:
+    """The centre (2,) of the parts' bounding box on the floor (x, z) and the farthest vertex's distance from it."""
+    xz = torch.cat([m.verts for m, _ in parts]).double()[:, [0, 2]].numpy()
+    centre = (xz.min(0) + xz.max(0)) / 2
+    return centre, float(np.linalg.norm(xz - centre, axis=1).max())
 
-    Returns points (P, 3) float32 (centred, farthest point at distance 1, then noise), their part labels
-    (P,) int64 and the visible share of the dense surface samples."""
-    mesh = prim.join([m for m, _ in parts])
-    face_part = torch.cat([torch.full((m.num_faces,), label, dtype=torch.int64) for m, label in parts])
-    samples = sample_surface(mesh, int(oversample) * int(num_points), generator)
-    pts = samples.points.double()
-    lo, hi = pts.min(0).values, pts.max(0).values
-    pts = (pts - (lo + hi) / 2) / (pts - (lo + hi) / 2).norm(dim=-1).max().clamp_min(1e-12)    # whole object: unit ball
-    seen = visible_points(pts, view_direction(azimuth, elevation).double(), int(grid), 1.0, float(tolerance))
-    index = seen.nonzero()[:, 0]
-    pick = torch.randperm(len(index), generator=generator)[:int(num_points)] if len(index) >= int(num_points) else \
-        torch.randint(0, len(index), (int(num_points),), generator=generator)
-    p, lab = pts[index[pick]], face_part[samples.face_index[index[pick]]]
-    lo, hi = p.min(0).values, p.max(0).values
-    p = p - (lo + hi) / 2
-    p = p / p.norm(dim=-1).max().clamp_min(1e-12)
-    p = p + float(noise) * torch.randn(p.shape, generator=generator, dtype=p.dtype)
-    return p.float(), lab, float(seen.double().mean())
+
+def surroundings(rng: np.random.Generator, parts: Sequence[Part], floor: bool) -> List[Part]:
+    """What stands around the object made of ``parts``: a neighbour of a random class, turned about the
+    vertical, its footprint 0.8-1.2 times the two footprints' radii away in a random direction, and (when
+    ``floor``) the floor around the object; every part labelled background."""
+    (cx, cz), r1 = _footprint(parts)
+    other = GENERATORS[CLASS_NAMES[int(rng.integers(len(CLASS_NAMES)))]](rng)
+    (ox, oz), r2 = _footprint(other)
+    angle, dist = rng.uniform(0.0, 2 * math.pi), (r1 + r2) * rng.uniform(0.8, 1.2)
+    rot = axis_rotation("y", rng.uniform(0.0, 360.0))
+    out = [(prim.transformed(prim.transformed(m, translation=(-ox, 0.0, -oz)), rotation=rot,
+                             translation=(cx + dist * math.cos(angle), 0.0, cz + dist * math.sin(angle))), BACKGROUND)
+           for m, _ in other]
+    if floor:
+        out.append((_box((cx, -0.01, cz), (3.0 * r1, 0.02, 3.0 * r1)), BACKGROUND))
+    return out
 
 
 def generate(classes: Sequence[str], per_class: int, num_points: int, seed: int, elevation: Sequence[float],
-             noise: float, oversample: int, grid: int, tolerance: float) -> Tuple[np.ndarray, ...]:
+             noise: float, oversample: int, grid: int, tolerance: float, occlusion: float = 0.0,
+             occluder_radius: Tuple[float, float] = (0.25, 0.6), cluttered: float = 0.0) -> Tuple[np.ndarray, ...]:
     """``per_class`` scans of each class: points (N, P, 3) float32, class labels (N,) uint8 (index in
     :data:`CLASS_NAMES`), part labels (N, P) uint8, visible share (N,) float32; class by class."""
     pts = np.empty((len(classes) * per_class, num_points, 3), np.float32)
@@ -268,8 +267,13 @@ def generate(classes: Sequence[str], per_class: int, num_points: int, seed: int,
             rng = np.random.default_rng([seed, cid, i])
             gen = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
             azimuth, elev = rng.uniform(0.0, 360.0), rng.uniform(*elevation)
-            p, lab, share = scan_object(GENERATORS[c](rng), num_points, gen, azimuth, elev, oversample, grid,
-                                        tolerance, noise)
+            shape = GENERATORS[c](rng)
+            around = surroundings(rng, shape, elev > 0.0) if rng.random() < cluttered else []
+            p, lab, share = scan_object(shape, num_points, gen, azimuth, elev, oversample, grid, tolerance, noise,
+                                        occlusion, occluder_radius, around)
+            if share < 0.1 and around:                   # the neighbour hides the object: scan it without
+                p, lab, share = scan_object(shape, num_points, gen, azimuth, elev, oversample, grid, tolerance,
+                                            noise, occlusion, occluder_radius)
             pts[k], parts[k], labels[k], seen[k] = p.numpy(), lab.numpy().astype(np.uint8), cid, share
     finally:
         torch.set_num_threads(threads)
@@ -279,7 +283,9 @@ def generate(classes: Sequence[str], per_class: int, num_points: int, seed: int,
 @DATASETS.register("shape_scans")
 def shape_scans(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 100, test_per_class: int = 40,
                 num_points: int = 2048, seed: int = 0, elevation: Sequence[float] = (-10.0, 50.0),
-                noise: float = 0.01, oversample: int = 8, scan_grid: int = 24, scan_tolerance: float = 0.08,
+                noise: float = 0.01, clutter: float = 0.5, occlusion: float = 0.5,
+                occluder_radius: Sequence[float] = (0.25, 0.6),
+                oversample: int = 8, scan_grid: int = 24, scan_tolerance: float = 0.08,
                 cache_dir: Optional[str] = None, val_fraction: float = 0.1, val_seed: int = 0, kind: str = "cls",
                 device=None) -> PointCloudData:
     """The built-in scans (see the module docstring), generated once and cached; both label kinds present."""
@@ -295,14 +301,20 @@ def shape_scans(classes: Sequence[str] = CLASS_NAMES, train_per_class: int = 100
     if not (-90.0 <= lo <= hi <= 90.0) or float(noise) < 0 or not float(scan_tolerance) > 0:
         raise UserError(f"need -90 <= data.elevation[0] <= [1] <= 90, data.noise >= 0 and data.scan_tolerance > 0; "
                         f"got {[lo, hi]}, {noise}, {scan_tolerance}")
+    r_lo, r_hi = config_floats(occluder_radius, "data.occluder_radius", 2)
+    if not (0.0 <= float(occlusion) <= 1.0 and 0.0 <= float(clutter) <= 1.0 and 0.0 <= r_lo <= r_hi):
+        raise UserError(f"need 0 <= data.occlusion <= 1, 0 <= data.clutter <= 1 and 0 <= data.occluder_radius[0] "
+                        f"<= [1]; got {occlusion}, {clutter}, {[r_lo, r_hi]}")
     n = int(train_per_class) + int(test_per_class)
-    knobs = {"classes": classes, "n": n, "num_points": int(num_points), "seed": int(seed), "elevation": [lo, hi],
+    knobs = {"clutter": float(clutter), "occlusion": float(occlusion), "occluder_radius": [r_lo, r_hi],
+             "classes": classes, "n": n, "num_points": int(num_points), "seed": int(seed), "elevation": [lo, hi],
              "noise": float(noise), "oversample": int(oversample), "grid": int(scan_grid),
              "tolerance": float(scan_tolerance), "v": VERSION}
 
     def make() -> dict:
         pts, labels, parts, seen = generate(classes, n, int(num_points), int(seed), (lo, hi), float(noise),
-                                            int(oversample), int(scan_grid), float(scan_tolerance))
+                                            int(oversample), int(scan_grid), float(scan_tolerance), float(occlusion),
+                                            (r_lo, r_hi), float(clutter))
         return {"points": pts, "labels": labels, "parts": parts, "seen": seen}
 
     pts, labels, parts, path = cached_point_sets("shape_scans", knobs, cache_dir, make)
