@@ -163,3 +163,6 @@ def test_shape_scans_dataset_splits_labels_and_cache(tmp_path):
         shape_scans(classes=["sofa"], cache_dir=str(tmp_path))
     with pytest.raises(UserError, match="elevation"):
         shape_scans(elevation=[50, 10], cache_dir=str(tmp_path))
+    for bad in ({"clutter": 1.5}, {"occlusion": -0.1}, {"occluder_radius": [0.6, 0.2]}):
+        with pytest.raises(UserError, match="data.clutter"):
+            shape_scans(cache_dir=str(tmp_path), **bad)
