@@ -153,12 +153,12 @@ def test_render_path_on_a_gs_train_run_matches_the_model(compose, tmp_path, data
 
 
 FIELD_RUN = ["gif_frames=0", "before_after=false", "time_budget=0"]
-VOLSDF_RUN = [*FIELD_RUN, "iters=30", "eval_every=30", "supersample=1", "stages.sphere_init.steps=50", "stages.free_space.steps=0",
+VOLSDF_RUN = [*FIELD_RUN, "iters=20", "eval_every=20", "supersample=1", "stages.sphere_init.steps=50", "stages.free_space.steps=0",
               "mesh_resolution=16", "+sampler.resolution=24"]
 
 
 @pytest.mark.parametrize("task, extra", [
-    ("train_nerf", [*FIELD_RUN, "iters=40", "eval_every=40", "batch_rays=512"]),
+    ("train_nerf", [*FIELD_RUN, "iters=25", "eval_every=25", "batch_rays=512"]),
     ("volsdf", VOLSDF_RUN),
     ("volsdf", [*VOLSDF_RUN, "density=neus", "s=3.0", "density.mode=anneal", "density.s_end=100"]),  # the loaded s is the run's last
     ("volsdf", [*VOLSDF_RUN, "beta=0.33", "density.beta_end=0.01", "data.elevation_range=[-60,60]"]),  # density=auto picks NeuS

@@ -10,15 +10,24 @@ import torch
 
 from l3d_app.errors import UserError
 
-# diffusers / transformers are in the test extra: a broken install fails here, it does not skip
-import diffusers
-import transformers
 
 from l3d_app.diffusion.stable_diffusion import (StableDiffusionPrior, check_pipeline_folder,
                                                 stable_diffusion_prior)
 from l3d_app.losses import sds
 
 MAX_LEN, HIDDEN, LATENT_SIDE, VAE_LEVELS = 16, 16, 8, 2   # image side = 8 * 2 ** (2 - 1) = 16
+diffusers = transformers = None   # the modules, set by hf_modules below
+
+
+@pytest.fixture(autouse=True, scope="module")
+def hf_modules():
+    """diffusers / transformers (in the test extra; a broken install fails here, it does not skip), imported
+    when this file's tests run rather than when every worker collects (a 4 s import)."""
+    global diffusers, transformers
+    import diffusers as diffusers_module
+    import transformers as transformers_module
+
+    diffusers, transformers = diffusers_module, transformers_module
 
 
 def _bytes_to_unicode() -> dict:
