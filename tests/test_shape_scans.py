@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
+from l3d_app.data.scanner import occluded, scan_object
 from l3d_app.data.shape_scans import (ARMS, BACK, BACKGROUND, CLASS_NAMES, GENERATORS, HANDLE, NECK, PART_NAMES,
-                                      occluded, scan_object, shape_scans, surroundings)
+                                      shape_scans, surroundings)
 from l3d_app.geometry import primitives as prim
 from l3d_app.errors import UserError
 from l3d_app.geometry.partial_scan import image_plane_basis, view_direction, visible_points

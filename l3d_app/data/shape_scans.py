@@ -39,9 +39,9 @@ import torch
 
 from l3d_app.data.point_cache import cached_point_sets, class_block_splits
 from l3d_app.data.point_sets import PointCloudData
+from l3d_app.data.scanner import Part, scan_object
 from l3d_app.data.shape_parts import arm_rests, lathe
 from l3d_app.errors import UserError
-from l3d_app.data.scanner import Part, occluded, scan_object  # noqa: F401  (occluded: part of this module's API)
 from l3d_app.geometry import primitives as prim
 from l3d_app.geometry.mesh import Mesh
 from l3d_app.geometry.transforms import axis_rotation
@@ -251,9 +251,10 @@ def surroundings(rng: np.random.Generator, parts: Sequence[Part], floor: bool) -
 
 def generate(classes: Sequence[str], per_class: int, num_points: int, seed: int, elevation: Sequence[float],
              noise: float, oversample: int, grid: int, tolerance: float, occlusion: float = 0.0,
-             occluder_radius: Tuple[float, float] = (0.25, 0.6), cluttered: float = 0.0) -> Tuple[np.ndarray, ...]:
+             occluder_radius: Tuple[float, float] = (0.25, 0.6), clutter: float = 0.0) -> Tuple[np.ndarray, ...]:
     """``per_class`` scans of each class: points (N, P, 3) float32, class labels (N,) uint8 (index in
-    :data:`CLASS_NAMES`), part labels (N, P) uint8, visible share (N,) float32; class by class."""
+    :data:`CLASS_NAMES`), part labels (N, P) uint8, the share of each object's surface samples in its scan
+    (N,) float32; class by class."""
     pts = np.empty((len(classes) * per_class, num_points, 3), np.float32)
     parts = np.empty((len(classes) * per_class, num_points), np.uint8)
     labels = np.empty(len(classes) * per_class, np.uint8)
@@ -268,7 +269,7 @@ def generate(classes: Sequence[str], per_class: int, num_points: int, seed: int,
             gen = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
             azimuth, elev = rng.uniform(0.0, 360.0), rng.uniform(*elevation)
             shape = GENERATORS[c](rng)
-            around = surroundings(rng, shape, elev > 0.0) if rng.random() < cluttered else []
+            around = surroundings(rng, shape, elev > 0.0) if rng.random() < clutter else []
             p, lab, share = scan_object(shape, num_points, gen, azimuth, elev, oversample, grid, tolerance, noise,
                                         occlusion, occluder_radius, around)
             if share < 0.1 and around:                   # the neighbour hides the object: scan it without

@@ -14,8 +14,7 @@ bound. A face can only be closer than ``u`` if its centroid lies within ``u + r_
 factor of two), one tree per group, and each group's ball query (radius ``u + max r`` of
 the group) lists the candidates: a few large faces in a finely tessellated mesh (a
 32-triangle tray on a 160k-triangle slab) then widen only their own group's query, not
-every face's (one global ``max r`` listed ~20k candidates per point there and ran out of
-24 GB). The per-face test prunes them, and only those (point, face) pairs are evaluated
+every face's (one global ``max r`` would list ~20k candidates per point there). The per-face test prunes them, and only those (point, face) pairs are evaluated
 exactly (:func:`closest_point_barycentrics`) in float64 and reduced with a scatter-min.
 The result is exact (up to float64 rounding); the pruning only skips faces that cannot
 win. Ties between faces go to the lowest face index.
